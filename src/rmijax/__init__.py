@@ -1,0 +1,67 @@
+"""rmijax: dynamic fault-detection thresholds for robot arms by Reachable Measurement Intervals.
+
+Importing rmijax changes no JAX configuration: choose float64 yourself with
+``jax.config.update("jax_enable_x64", True)`` (or pass float64 arrays).
+"""
+
+from rmijax.control import (
+    closed_loop_step as closed_loop_step,
+    coupled_perturbation as coupled_perturbation,
+)
+from rmijax.engine import (
+    DEFAULT_MEMORY_BUDGET as DEFAULT_MEMORY_BUDGET,
+    MODES as MODES,
+    Bounds as Bounds,
+    ProblemTooLargeError as ProblemTooLargeError,
+    estimate_memory as estimate_memory,
+    rmi as rmi,
+    rmi_step as rmi_step,
+)
+from rmijax.model import (
+    GRAVITY as GRAVITY,
+    RobotModel as RobotModel,
+    planar_arm_model as planar_arm_model,
+)
+from rmijax.params import (
+    UncertainRobot as UncertainRobot,
+    corner_tensor as corner_tensor,
+    paper_arm2 as paper_arm2,
+    paper_pendulum as paper_pendulum,
+    planar_arm as planar_arm,
+    preset_arm as preset_arm,
+    uncertain_robot as uncertain_robot,
+)
+from rmijax.trajectory import (
+    PATHS as PATHS,
+    Trajectory as Trajectory,
+    trajectory as trajectory,
+    trajectory_from_samples as trajectory_from_samples,
+)
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "DEFAULT_MEMORY_BUDGET",
+    "GRAVITY",
+    "MODES",
+    "PATHS",
+    "Bounds",
+    "ProblemTooLargeError",
+    "RobotModel",
+    "Trajectory",
+    "UncertainRobot",
+    "closed_loop_step",
+    "corner_tensor",
+    "coupled_perturbation",
+    "estimate_memory",
+    "paper_arm2",
+    "paper_pendulum",
+    "planar_arm",
+    "planar_arm_model",
+    "preset_arm",
+    "rmi",
+    "rmi_step",
+    "trajectory",
+    "trajectory_from_samples",
+    "uncertain_robot",
+]

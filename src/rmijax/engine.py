@@ -1,0 +1,440 @@
+"""The RMI engine: exact Reachable Measurement Interval bounds (SPEC sections 4-5).
+
+For every output (joint ``i``, sensor encoder/tachometer) and end step ``t_f``
+RMI runs two tracks (max and min) through the window ``k0 = max(0, t_f - N)
+.. t_f``, choosing at every step the parameter corner that maximises (or
+minimises) the costate-weighted perturbation ``L(k+1)' e2 gv``.
+
+Shape of the computation: the ``K`` corners are one stacked array; one window
+step is a ``vmap`` over the ``4n`` tracks (extreme x joint x sensor) and over
+corners; the window is a ``lax.scan``; end steps are independent windows,
+batched in chunks sized from a memory budget (``lax.map`` with a batch size);
+the whole is ``jit``-compiled. Windows are aligned at their end: step ``s`` of
+the scan is time ``k = t_f - N + s``, inactive while ``k < 0``, so every end
+step has the same shape and the costate weights depend on ``s`` alone.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+import warnings
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from rmijax import _checks
+from rmijax.control import closed_loop_step, computed_torque, servo_command
+from rmijax.params import UncertainRobot
+from rmijax.trajectory import Trajectory
+
+__all__ = [
+    "DEFAULT_MEMORY_BUDGET",
+    "MODES",
+    "Bounds",
+    "ProblemTooLargeError",
+    "estimate_memory",
+    "rmi",
+    "rmi_step",
+]
+
+MODES = ("coupled", "per_joint")
+"""RMI modes: ``coupled`` (exact, the default) and ``per_joint`` (the paper's)."""
+
+DEFAULT_MEMORY_BUDGET = 2 * 2**30
+"""Default bytes allowed for the working set of one batch of end steps (2 GiB)."""
+
+_MAX_BATCH = 256
+
+
+class ProblemTooLargeError(MemoryError):
+    """The working set of even one end step exceeds the memory budget."""
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Bounds:
+    """RMI bounds; ``[..., 0]`` is the encoder (rad), ``[..., 1]`` the tachometer (rad/s).
+
+    Attributes:
+        lower, upper: (T+1, n, 2) from :func:`rmi`, (n, 2) from :func:`rmi_step`.
+        nominal: the nominal output ``c x_n(t_f)``, same shape.
+        crossed: bool mask, same shape, where ``upper < lower`` (the greedy
+            max track ended below the min track); never swapped silently.
+    """
+
+    lower: jax.Array
+    upper: jax.Array
+    nominal: jax.Array
+    crossed: jax.Array
+
+    @property
+    def width(self) -> jax.Array:
+        """``upper - lower``, same shape as the bounds."""
+        return self.upper - self.lower
+
+
+# --------------------------------------------------------------------------
+# Validation and set-up
+# --------------------------------------------------------------------------
+
+
+def _validate(traj, params, mode, window, noise_lo, noise_hi):
+    if not isinstance(traj, Trajectory):
+        raise TypeError(
+            f"traj must be a rmijax.Trajectory (from rmijax.trajectory or "
+            f"rmijax.trajectory_from_samples), got {type(traj).__name__}"
+        )
+    if not isinstance(params, UncertainRobot):
+        raise TypeError(
+            f"params must be a rmijax.UncertainRobot (from rmijax.planar_arm, "
+            f"rmijax.preset_arm, ...), got {type(params).__name__}"
+        )
+    if mode not in MODES:
+        raise ValueError(f"unknown mode {mode!r}; choose one of {MODES}")
+    if isinstance(window, bool) or not isinstance(window, (int, np.integer)) or window < 1:
+        raise ValueError(f"window must be an integer number of steps >= 1, got {window!r}")
+    n = traj.n_joints
+    if params.n_joints != n:
+        raise ValueError(
+            f"traj has {n} joints but params describes a {params.n_joints}-joint robot; "
+            "give one path per joint of the robot"
+        )
+    dtype = jnp.result_type(traj.dtype, params.dtype)
+    for name in ("u_d", "x_n", "qdd_n", "kp", "kd"):
+        _checks.check_finite(f"traj.{name}", getattr(traj, name))
+    _checks.check_stable(traj.kp, traj.kd, traj.dt)
+    lo = _checks.noise_bounds("noise_lo", noise_lo, n, dtype)
+    hi = _checks.noise_bounds("noise_hi", noise_hi, n, dtype)
+    if _checks.is_concrete(lo) and _checks.is_concrete(hi):
+        bad = np.argwhere(np.asarray(lo) > np.asarray(hi))
+        if bad.size:
+            i, s = (int(v) for v in bad[0])
+            raise ValueError(
+                f"noise_lo > noise_hi for joint {i} {'encoder' if s == 0 else 'tachometer'}"
+                f" ({float(lo[i, s])!r} > {float(hi[i, s])!r}); the noise interval "
+                "must satisfy noise_lo <= noise_hi (noise_lo is usually <= 0)"
+            )
+    return dtype, lo, hi
+
+
+def estimate_memory(params: UncertainRobot, *, mode="coupled", window=100, dtype=None) -> int:
+    """Estimated peak bytes of the working set of one end step's window.
+
+    The inner step evaluates every corner on every track: ``4n x K`` values
+    per intermediate. A closed-form model fuses into a few such arrays; a
+    model solved by ``jnp.linalg.solve`` materialises ``(4n, K, n, n)``
+    matrices. The estimate is deliberately conservative.
+    """
+    del window  # the scan keeps one step's intermediates alive at a time
+    n, k = params.n_joints, params.n_corners
+    itemsize = jnp.dtype(dtype or params.dtype).itemsize
+    tracks = 4 * n
+    if mode == "coupled" and params.model.forward_dynamics is not None:
+        per_value = 2 * n + 8
+    else:
+        per_value = 3 * n * n + 4 * n + 8
+    return tracks * k * itemsize * per_value
+
+
+def _batch_size(params, mode, window, dtype, budget, n_end_steps, chunk_size):
+    per_end_step = estimate_memory(params, mode=mode, window=window, dtype=dtype)
+    if per_end_step > budget:
+        raise ProblemTooLargeError(
+            f"one end step of this problem needs about {per_end_step / 2**30:.2f} GiB "
+            f"({params.n_joints} joints, K = {params.n_corners} corners, mode={mode!r}) "
+            f"but memory_budget is {budget / 2**30:.2f} GiB even at chunk size 1. Raise "
+            "memory_budget (bytes) if the machine has the memory, or make parameters "
+            "certain (lo == hi) to shrink the box."
+        )
+    if chunk_size is not None:
+        if int(chunk_size) < 1:
+            raise ValueError(f"chunk_size must be >= 1, got {chunk_size!r}")
+        if int(chunk_size) * per_end_step > budget:
+            raise ProblemTooLargeError(
+                f"chunk_size={chunk_size} needs about "
+                f"{int(chunk_size) * per_end_step / 2**30:.2f} GiB, over memory_budget "
+                f"{budget / 2**30:.2f} GiB; use chunk_size <= {budget // per_end_step} "
+                "or leave it None to size it from the budget"
+            )
+        return min(int(chunk_size), n_end_steps)
+    return int(max(1, min(budget // per_end_step, _MAX_BATCH, n_end_steps)))
+
+
+def _window_data(traj, params, window, dtype):
+    """Arrays one window needs, padded so that any end step slices a fixed length."""
+    n, size = traj.n_joints, window
+    cast = functools.partial(jnp.asarray, dtype=dtype)
+    kp, kd, dt = cast(traj.kp), cast(traj.kd), traj.dt
+
+    # Costate L(k+1) = (A_i')^(N-1-s) c for window step s; only its velocity
+    # component weighs gv. Iterated as L(k) = A' L(k+1), like the definition.
+    # Arrays are (n, 2 sensors): c = (1, 0) for the encoder, (0, 1) for the tachometer.
+    kp_col, kd_col = kp[:, None], kd[:, None]
+
+    def back(costate, _):
+        pos, vel = costate
+        prev = (pos + (-kp_col * dt) * vel, dt * pos + (1.0 - kd_col * dt) * vel)
+        return prev, vel
+
+    eye = jnp.eye(2, dtype=dtype)
+    start = (jnp.broadcast_to(eye[0], (n, 2)), jnp.broadcast_to(eye[1], (n, 2)))
+    _, vel_weights = jax.lax.scan(back, start, None, length=size)
+    weights = jnp.flip(vel_weights, 0)  # (N, n, 2): step s weighs with (A')^(N-1-s) c
+
+    def pad(x):
+        x = cast(x)
+        return jnp.concatenate([jnp.zeros((size,) + x.shape[1:], dtype), x], axis=0)
+
+    return dict(
+        u=pad(traj.u_d),
+        x_n=cast(traj.x_n),
+        x_pad=pad(traj.x_n),
+        qdd_pad=pad(traj.qdd_n),
+        weights=weights,
+        corners=cast(params.corners),
+        nominal=cast(params.nominal),
+        kp=kp,
+        kd=kd,
+    )
+
+
+def _tracks(n):
+    """Track layout: index ``e * 2n + i * 2 + s`` for extreme e (max, min), joint, sensor."""
+    extreme, joint, sensor = np.meshgrid(np.arange(2), np.arange(n), np.arange(2), indexing="ij")
+    return extreme.ravel(), joint.ravel(), sensor.ravel()
+
+
+def _window_extremes(t_f, data, model, mode, window, dt):
+    """``c x_max(t_f)`` and ``c x_min(t_f)`` for every output: (2, n, 2) [extreme, joint, sensor]."""
+    n = model.n_joints
+    extreme, joint, sensor = _tracks(n)
+    dtype = data["u"].dtype
+    sign = jnp.asarray(1 - 2 * extreme, dtype)  # +1 max, -1 min
+    onehot = jnp.asarray(np.eye(n)[joint], dtype)  # (4n, n)
+    corners, nominal, kp, kd = data["corners"], data["nominal"], data["kp"], data["kd"]
+
+    steps = jnp.arange(window)
+    active = (t_f - window + steps) >= 0
+    u_win = jax.lax.dynamic_slice_in_dim(data["u"], t_f, window, 0)
+    sigma = sign[None, :] * data["weights"][:, joint, sensor]  # (N, 4n)
+    x0 = data["x_n"][jnp.maximum(t_f - window, 0)]  # (n, 2)
+
+    if mode == "coupled":
+
+        def track_step(x, sigma_t, onehot_t, u):
+            q, qd = x[:, 0], x[:, 1]
+            v = servo_command(q, qd, u, kp, kd)
+            tau = computed_torque(model, nominal, q, qd, v)
+
+            def score(th):
+                return sigma_t * jnp.dot(onehot_t, model.accelerations(q, qd, tau, th) - v)
+
+            best = jnp.argmax(jax.vmap(score)(corners))
+            gv = model.accelerations(q, qd, tau, corners[best]) - v
+            return jnp.stack(closed_loop_step(q, qd, u, gv, kp, kd, dt), axis=-1)
+
+        def step(states, inputs):
+            u, sigma_s, on = inputs
+            new = jax.vmap(track_step, in_axes=(0, 0, 0, None))(states, sigma_s, onehot, u)
+            return jnp.where(on, new, states), None
+
+        init = jnp.broadcast_to(x0, (4 * n, n, 2))
+        final, _ = jax.lax.scan(step, init, (u_win, sigma, active))
+        values = final[np.arange(4 * n), joint, sensor]
+    else:
+        xn_win = jax.lax.dynamic_slice_in_dim(data["x_pad"], t_f, window, 0)
+        qddn_win = jax.lax.dynamic_slice_in_dim(data["qdd_pad"], t_f, window, 0)
+
+        def track_step(x, sigma_t, onehot_t, u, xn, qddn):
+            mine = onehot_t > 0
+            q = jnp.where(mine, x[0], xn[:, 0])
+            qd = jnp.where(mine, x[1], xn[:, 1])
+            v = servo_command(q, qd, u, kp, kd)
+            tau = computed_torque(model, nominal, q, qd, v)
+            tau_i, v_i = jnp.dot(onehot_t, tau), jnp.dot(onehot_t, v)
+            qdd_others = jnp.where(mine, 0.0, qddn)
+
+            def perturbation(th):
+                row = onehot_t @ model.mass_matrix(q, th)
+                bias_i = jnp.dot(onehot_t, model.bias(q, qd, th))
+                return (tau_i - jnp.dot(row, qdd_others) - bias_i) / jnp.dot(row, onehot_t) - v_i
+
+            gvs = jax.vmap(perturbation)(corners)
+            gv = gvs[jnp.argmax(sigma_t * gvs)]
+            q_i, qd_i = closed_loop_step(
+                x[0], x[1], jnp.dot(onehot_t, u), gv, jnp.dot(onehot_t, kp),
+                jnp.dot(onehot_t, kd), dt,
+            )
+            return jnp.stack([q_i, qd_i])
+
+        def step(states, inputs):
+            u, sigma_s, on, xn, qddn = inputs
+            new = jax.vmap(track_step, in_axes=(0, 0, 0, None, None, None))(
+                states, sigma_s, onehot, u, xn, qddn
+            )
+            return jnp.where(on, new, states), None
+
+        init = x0[joint]  # (4n, 2): each track starts from its own joint's nominal state
+        final, _ = jax.lax.scan(step, init, (u_win, sigma, active, xn_win, qddn_win))
+        values = final[np.arange(4 * n), sensor]
+    return values.reshape(2, n, 2)
+
+
+def _assemble(extremes, nominal, noise_lo, noise_hi):
+    upper = extremes[..., 0, :, :] + noise_hi
+    lower = extremes[..., 1, :, :] + noise_lo
+    return Bounds(lower=lower, upper=upper, nominal=nominal, crossed=upper < lower)
+
+
+@functools.partial(jax.jit, static_argnames=("mode", "window", "batch"))
+def _rmi_all(traj, params, noise_lo, noise_hi, *, mode, window, batch):
+    dtype = noise_lo.dtype
+    data = _window_data(traj, params, window, dtype)
+    fn = functools.partial(
+        _window_extremes, data=data, model=params.model, mode=mode, window=window, dt=traj.dt
+    )
+    end_steps = jnp.arange(traj.n_steps + 1)
+    extremes = jax.lax.map(fn, end_steps, batch_size=batch)  # (T+1, 2, n, 2)
+    return _assemble(extremes, data["x_n"], noise_lo, noise_hi)
+
+
+@functools.partial(jax.jit, static_argnames=("mode", "window"))
+def _rmi_chunk(traj, params, end_steps, *, mode, window):
+    data = _window_data(traj, params, window, traj.u_d.dtype)
+    fn = functools.partial(
+        _window_extremes, data=data, model=params.model, mode=mode, window=window, dt=traj.dt
+    )
+    return jax.vmap(fn)(end_steps)
+
+
+@functools.partial(jax.jit, static_argnames=("mode", "window"))
+def _rmi_one(traj, params, t_f, noise_lo, noise_hi, *, mode, window):
+    dtype = noise_lo.dtype
+    data = _window_data(traj, params, window, dtype)
+    extremes = _window_extremes(t_f, data, params.model, mode, window, traj.dt)
+    return _assemble(extremes, data["x_n"][t_f], noise_lo, noise_hi)
+
+
+def _cast(traj, params, dtype):
+    traj = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), traj)
+    params = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), params)
+    return traj, params
+
+
+def _warn_crossed(bounds):
+    if _checks.is_concrete(bounds.crossed) and bool(jnp.any(bounds.crossed)):
+        count = int(jnp.sum(bounds.crossed))
+        warnings.warn(
+            f"RMI bounds crossed (upper < lower) at {count} output sample(s); see "
+            "bounds.crossed. They are returned as computed, not swapped.",
+            RuntimeWarning,
+            stacklevel=3,
+        )
+
+
+def rmi(
+    traj: Trajectory,
+    params: UncertainRobot,
+    *,
+    mode: str = "coupled",
+    window: int = 100,
+    noise_lo=0.0,
+    noise_hi=0.0,
+    memory_budget: int = DEFAULT_MEMORY_BUDGET,
+    chunk_size: int | None = None,
+    progress: bool = False,
+) -> Bounds:
+    """RMI bounds for every end step of a trajectory (the offline form).
+
+    Callable inside the user's ``jax.jit`` (value checks are then skipped;
+    shapes are still checked).
+
+    Args:
+        traj: the desired motion and its nominal response.
+        params: the robot and its parameter box (``K = 2^p`` corners).
+        mode: ``"coupled"`` (exact, default) or ``"per_joint"`` (the paper's;
+            not a safe threshold for ``n >= 2``, SPEC section 4).
+        window: ``N``, steps per window (>= 1).
+        noise_lo, noise_hi: sensor noise bounds ``[V_lo, V_hi]``, scalar,
+            ``(2,)`` (encoder rad, tachometer rad/s) or ``(n, 2)``.
+        memory_budget: bytes allowed for one batch of end steps; the batch
+            size follows from it.
+        chunk_size: end steps per batch; default from ``memory_budget``.
+        progress: show a progress bar over batches (eager calls only).
+
+    Returns:
+        :class:`Bounds` with ``lower``, ``upper``, ``nominal``, ``crossed``
+        of shape (T+1, n, 2).
+
+    Raises:
+        TypeError, ValueError: invalid inputs (the message names the argument).
+        ProblemTooLargeError: one end step cannot fit in ``memory_budget``.
+    """
+    dtype, lo, hi = _validate(traj, params, mode, window, noise_lo, noise_hi)
+    traj, params = _cast(traj, params, dtype)
+    n_end = traj.n_steps + 1
+    batch = _batch_size(params, mode, window, dtype, memory_budget, n_end, chunk_size)
+    concrete = all(_checks.is_concrete(a) for a in jax.tree_util.tree_leaves((traj, params)))
+    if progress and concrete:
+        bounds = _rmi_with_progress(traj, params, lo, hi, mode, window, batch)
+    else:
+        bounds = _rmi_all(traj, params, lo, hi, mode=mode, window=int(window), batch=batch)
+    _warn_crossed(bounds)
+    return bounds
+
+
+def _rmi_with_progress(traj, params, lo, hi, mode, window, batch):
+    from tqdm.auto import tqdm
+
+    n_end = traj.n_steps + 1
+    n_chunks = math.ceil(n_end / batch)
+    pieces = []
+    with tqdm(total=n_end, desc=f"RMI {mode} n={traj.n_joints}", unit="step") as bar:
+        for chunk in range(n_chunks):
+            ends = np.arange(chunk * batch, (chunk + 1) * batch)
+            ends = np.minimum(ends, n_end - 1)  # fixed chunk shape: no retrace on the last
+            extremes = _rmi_chunk(traj, params, jnp.asarray(ends), mode=mode, window=int(window))
+            extremes.block_until_ready()
+            pieces.append(extremes)
+            bar.update(min(batch, n_end - chunk * batch))
+    extremes = jnp.concatenate(pieces, axis=0)[:n_end]
+    return _assemble(extremes, traj.x_n, lo, hi)
+
+
+def rmi_step(
+    traj: Trajectory,
+    params: UncertainRobot,
+    t_f,
+    *,
+    mode: str = "coupled",
+    window: int = 100,
+    noise_lo=0.0,
+    noise_hi=0.0,
+) -> Bounds:
+    """RMI bounds of one end step ``t_f`` (the online form).
+
+    ``t_f`` may be a Python int or a traced integer: under the user's
+    ``jax.jit`` the same compiled step serves every ``t_f`` without retracing.
+    A traced ``t_f`` outside ``[0, T]`` is clipped into it.
+
+    Returns:
+        :class:`Bounds` with ``lower``, ``upper``, ``nominal``, ``crossed`` of
+        shape (n, 2).
+    """
+    dtype, lo, hi = _validate(traj, params, mode, window, noise_lo, noise_hi)
+    traj, params = _cast(traj, params, dtype)
+    if _checks.is_concrete(t_f):
+        if np.ndim(t_f) != 0 or not float(t_f).is_integer():
+            raise ValueError(f"t_f must be an integer end step, got {t_f!r}")
+        if not 0 <= int(t_f) <= traj.n_steps:
+            raise ValueError(
+                f"t_f={int(t_f)} is outside the trajectory's end steps [0, {traj.n_steps}]"
+            )
+    _batch_size(params, mode, window, dtype, DEFAULT_MEMORY_BUDGET, 1, None)
+    t_f = jnp.clip(jnp.asarray(t_f, jnp.int32), 0, traj.n_steps)
+    bounds = _rmi_one(traj, params, t_f, lo, hi, mode=mode, window=int(window))
+    _warn_crossed(bounds)
+    return bounds
