@@ -201,6 +201,25 @@ def _window_data(traj, params, window, dtype):
     )
 
 
+def _pick_corner(scores, offset):
+    """Index of the best (largest) score; near-ties go to the lowest corner index.
+
+    Corners whose scores agree to roundoff are ties in exact arithmetic (e.g.
+    at ``v = 0`` the first joint's ``gv`` does not depend on the last mass),
+    yet they move the other joints differently. So a corner within
+    ``eps^(2/3)`` (4e-11 in float64, 2e-5 in float32) of the best, relative to the
+    score's cancellation scale ``max|score| + |offset|``, counts as tied, and
+    the lowest index wins, as the contract says.
+
+    Args:
+        scores: (K,) costate-weighted perturbations ``sigma * gv_i``.
+        offset: ``sigma * v_i``, the part cancelled in ``gv = qdd - v``.
+    """
+    rtol = jnp.finfo(scores.dtype).eps ** (2.0 / 3.0)
+    tol = rtol * (jnp.max(jnp.abs(scores)) + jnp.abs(offset))
+    return jnp.argmax(scores >= jnp.max(scores) - tol)
+
+
 def _tracks(n):
     """Track layout: index ``e * 2n + i * 2 + s`` for extreme e (max, min), joint, sensor."""
     extreme, joint, sensor = np.meshgrid(np.arange(2), np.arange(n), np.arange(2), indexing="ij")
@@ -232,7 +251,7 @@ def _window_extremes(t_f, data, model, mode, window, dt):
             def score(th):
                 return sigma_t * jnp.dot(onehot_t, model.accelerations(q, qd, tau, th) - v)
 
-            best = jnp.argmax(jax.vmap(score)(corners))
+            best = _pick_corner(jax.vmap(score)(corners), sigma_t * jnp.dot(onehot_t, v))
             gv = model.accelerations(q, qd, tau, corners[best]) - v
             return jnp.stack(closed_loop_step(q, qd, u, gv, kp, kd, dt), axis=-1)
 
@@ -263,7 +282,7 @@ def _window_extremes(t_f, data, model, mode, window, dt):
                 return (tau_i - jnp.dot(row, qdd_others) - bias_i) / jnp.dot(row, onehot_t) - v_i
 
             gvs = jax.vmap(perturbation)(corners)
-            gv = gvs[jnp.argmax(sigma_t * gvs)]
+            gv = gvs[_pick_corner(sigma_t * gvs, sigma_t * v_i)]
             q_i, qd_i = closed_loop_step(
                 x[0], x[1], jnp.dot(onehot_t, u), gv, jnp.dot(onehot_t, kp),
                 jnp.dot(onehot_t, kd), dt,
@@ -284,8 +303,9 @@ def _window_extremes(t_f, data, model, mode, window, dt):
 
 
 def _assemble(extremes, nominal, noise_lo, noise_hi):
-    upper = extremes[..., 0, :, :] + noise_hi
-    lower = extremes[..., 1, :, :] + noise_lo
+    shape = extremes[..., 0, :, :].shape
+    upper = extremes[..., 0, :, :] + jnp.broadcast_to(noise_hi, shape)
+    lower = extremes[..., 1, :, :] + jnp.broadcast_to(noise_lo, shape)
     return Bounds(lower=lower, upper=upper, nominal=nominal, crossed=upper < lower)
 
 

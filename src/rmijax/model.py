@@ -111,7 +111,8 @@ def planar_mass_matrix(q, th):
     weights, _ = _planar_weights(masses, lengths)
     phi = jnp.cumsum(q)
     inertia_abs = weights * jnp.cos(phi[:, None] - phi[None, :])
-    return _tail_sum(_tail_sum(inertia_abs, 0), 1)
+    mass = _tail_sum(_tail_sum(inertia_abs, 0), 1)
+    return 0.5 * (mass + mass.T)  # exactly symmetric (the two tail sums round differently)
 
 
 def planar_bias(q, qd, th):

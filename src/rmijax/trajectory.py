@@ -94,7 +94,7 @@ class Trajectory:
 @functools.partial(jax.jit, static_argnames=("dt",))
 def _nominal(q_d, qd_d, qdd_d, kp, kd, dt):
     """Feed-forward, nominal state and nominal acceleration from desired samples."""
-    u_d = feedforward(q_d, qd_d, qdd_d, kp, kd)
+    u_d = feedforward(q_d, qd_d, qdd_d, kp[None, :], kd[None, :])
 
     def step(state, u):
         q, qd = state
@@ -103,7 +103,7 @@ def _nominal(q_d, qd_d, qdd_d, kp, kd, dt):
 
     _, rest = jax.lax.scan(step, (q_d[0], qd_d[0]), u_d[:-1])
     x_n = jnp.concatenate([jnp.stack([q_d[0], qd_d[0]], axis=-1)[None], rest], axis=0)
-    qdd_n = servo_command(x_n[..., 0], x_n[..., 1], u_d, kp, kd)
+    qdd_n = servo_command(x_n[..., 0], x_n[..., 1], u_d, kp[None, :], kd[None, :])
     return u_d, x_n, qdd_n
 
 
