@@ -8,6 +8,7 @@ import numpy as np
 
 import rmijax
 
+
 def random_arm(rng, n, *, certain=()):
     """A planar arm with a random asymmetric box around random nominal values."""
     masses = rng.uniform(2.0, 12.0, n)
@@ -20,10 +21,12 @@ def random_arm(rng, n, *, certain=()):
         lo[b] = hi[b] = nominal[b]
     return rmijax.planar_arm(nominal, lo, hi)
 
+
 def random_gains(rng, n):
     kp = rng.uniform(40.0, 160.0, n)
     kd = rng.uniform(12.0, 30.0, n)
     return kp, kd
+
 
 @jax.jit
 def simulate_constant(traj, params, th_true):
@@ -48,6 +51,7 @@ def simulate_constant(traj, params, th_true):
 
     return jax.vmap(run)(th_true)
 
+
 def containment(states, bounds):
     """(fraction of samples inside, fraction of clean runs, worst violation / width)."""
     lower, upper = np.asarray(bounds.lower), np.asarray(bounds.upper)
@@ -60,6 +64,7 @@ def containment(states, bounds):
     relative = np.where(width > 0, violation / np.where(width > 0, width, 1.0), 0.0)
     runs_clean = inside.reshape(inside.shape[0], -1).all(axis=1)
     return inside.mean(), runs_clean.mean(), relative.max()
+
 
 def mc_parameters(params, draws, seed):
     """All corners plus ``draws`` uniform samples of the box: (K + draws, p)."""

@@ -100,8 +100,9 @@ def closed_loop(q_d, qd_d, qdd_d, kp, kd, dt):
     return u_d, x_n, qdd_n
 
 
-def rmi_reference(model, q_d, qd_d, qdd_d, kp, kd, dt, nominal, lo, hi, *, mode, window,
-                  v_lo=None, v_hi=None):
+def rmi_reference(
+    model, q_d, qd_d, qdd_d, kp, kd, dt, nominal, lo, hi, *, mode, window, v_lo=None, v_hi=None
+):
     """Bounds (lower, upper, nominal), each (T+1, n, 2), by SPEC sections 3-5 verbatim."""
     n_samples, n = q_d.shape
     v_lo = np.zeros((n, 2)) if v_lo is None else np.broadcast_to(v_lo, (n, 2))
@@ -175,9 +176,11 @@ def rmi_reference(model, q_d, qd_d, qdd_d, kp, kd, dt, nominal, lo, hi, *, mode,
                             score = costate[k + 1][1] * gv
                             v_i = u_d[k, i] - kd[i] * x[1] - kp[i] * x[0]
                             chosen = gv[pick(score, costate[k + 1][1] * v_i, largest)]
-                            x = a_joint[i] @ x + np.array([0.0, dt]) * u_d[k, i] + np.array(
-                                [0.0, dt]
-                            ) * chosen
+                            x = (
+                                a_joint[i] @ x
+                                + np.array([0.0, dt]) * u_d[k, i]
+                                + np.array([0.0, dt]) * chosen
+                            )
                         result.append(x[s])
                 upper[t_f, i, s] = result[0] + v_hi[i, s]
                 lower[t_f, i, s] = result[1] + v_lo[i, s]

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 import rmijax
+
 from helpers import containment, mc_parameters, simulate_constant
 from reference_numpy import PlanarArmNumpy, simulate_plant
 
@@ -19,8 +20,15 @@ def test_simple_plant_matches_numpy():
     th = mc_parameters(params, 2, seed=1)[[0, 7, 16, 17]]
     jax_states = simulate_constant(traj, params, th)
     numpy_states = simulate_plant(
-        PlanarArmNumpy(2), np.asarray(traj.q_d), np.asarray(traj.qd_d), np.asarray(traj.qdd_d),
-        np.asarray(traj.kp), np.asarray(traj.kd), traj.dt, np.asarray(params.nominal), th,
+        PlanarArmNumpy(2),
+        np.asarray(traj.q_d),
+        np.asarray(traj.qd_d),
+        np.asarray(traj.qdd_d),
+        np.asarray(traj.kp),
+        np.asarray(traj.kd),
+        traj.dt,
+        np.asarray(params.nominal),
+        th,
     )
     np.testing.assert_allclose(jax_states, numpy_states, rtol=0, atol=1e-11)
     # The nominal parameters reproduce the nominal trajectory.
@@ -53,7 +61,9 @@ def test_coupled_containment_levels(preset, paths, inside_min, clean_min, worst_
 def test_containment_bookkeeping():
     """The containment metric itself, on a hand-made band."""
     bounds = rmijax.Bounds(
-        lower=np.zeros((3, 1, 2)), upper=np.ones((3, 1, 2)), nominal=np.zeros((3, 1, 2)),
+        lower=np.zeros((3, 1, 2)),
+        upper=np.ones((3, 1, 2)),
+        nominal=np.zeros((3, 1, 2)),
         crossed=np.zeros((3, 1, 2), bool),
     )
     states = np.full((2, 3, 1, 2), 0.5)

@@ -1,7 +1,6 @@
 """The RMI engine (SPEC sections 4-5) against the reference files and the NumPy reference."""
 
 import dataclasses
-import functools
 
 import chex
 import jax
@@ -10,6 +9,7 @@ import numpy as np
 import pytest
 
 import rmijax
+
 from conftest import load_case
 from helpers import random_arm, random_gains
 from reference_numpy import PlanarArmNumpy, rmi_reference
@@ -40,8 +40,12 @@ def test_reference_cases(name):
     traj, params = case_inputs(case)
     np.testing.assert_array_equal(params.corners, case["corners"])
     bounds = rmijax.rmi(
-        traj, params, mode=str(case["mode"]), window=int(case["N"]),
-        noise_lo=case["v_lo"], noise_hi=case["v_hi"],
+        traj,
+        params,
+        mode=str(case["mode"]),
+        window=int(case["N"]),
+        noise_lo=case["v_lo"],
+        noise_hi=case["v_hi"],
     )
     for key in ("lower", "upper", "nominal"):
         np.testing.assert_allclose(getattr(bounds, key), case[key], rtol=0, atol=1e-10)
@@ -69,13 +73,24 @@ def random_problem(rng, n):
 @pytest.mark.parametrize("n", [1, 2, 3, 4])
 def test_equals_numpy_reference(rng, n, mode):
     traj, params, window, noise_lo, noise_hi = random_problem(rng, n)
-    bounds = rmijax.rmi(traj, params, mode=mode, window=window, noise_lo=noise_lo,
-                        noise_hi=noise_hi)
+    bounds = rmijax.rmi(
+        traj, params, mode=mode, window=window, noise_lo=noise_lo, noise_hi=noise_hi
+    )
     lower, upper, nominal = rmi_reference(
-        PlanarArmNumpy(n), np.asarray(traj.q_d), np.asarray(traj.qd_d), np.asarray(traj.qdd_d),
-        np.asarray(traj.kp), np.asarray(traj.kd), traj.dt, np.asarray(params.nominal),
-        np.asarray(params.lo), np.asarray(params.hi), mode=mode, window=window,
-        v_lo=noise_lo, v_hi=noise_hi,
+        PlanarArmNumpy(n),
+        np.asarray(traj.q_d),
+        np.asarray(traj.qd_d),
+        np.asarray(traj.qdd_d),
+        np.asarray(traj.kp),
+        np.asarray(traj.kd),
+        traj.dt,
+        np.asarray(params.nominal),
+        np.asarray(params.lo),
+        np.asarray(params.hi),
+        mode=mode,
+        window=window,
+        v_lo=noise_lo,
+        v_hi=noise_hi,
     )
     np.testing.assert_allclose(bounds.nominal, nominal, rtol=0, atol=1e-10)
     np.testing.assert_allclose(bounds.lower, lower, rtol=0, atol=1e-10)
@@ -95,10 +110,12 @@ def toy_bias(q, qd, th):
     m1, c1, m2 = th[0], th[1], th[2]
     angle, r = q[0], q[1]
     g = rmijax.GRAVITY
-    return jnp.array([
-        2.0 * m2 * r * qd[0] * qd[1] + (m1 * c1 + m2 * r) * g * jnp.cos(angle),
-        -m2 * r * qd[0] ** 2 + m2 * g * jnp.sin(angle),
-    ])
+    return jnp.array(
+        [
+            2.0 * m2 * r * qd[0] * qd[1] + (m1 * c1 + m2 * r) * g * jnp.cos(angle),
+            -m2 * r * qd[0] ** 2 + m2 * g * jnp.sin(angle),
+        ]
+    )
 
 
 class ToyNumpy:
@@ -112,24 +129,37 @@ class ToyNumpy:
     def bias(self, q, qd, th):
         th = np.atleast_2d(th)
         g = rmijax.GRAVITY
-        return np.stack([
-            2 * th[:, 2] * q[1] * qd[0] * qd[1] + (th[:, 0] * th[:, 1] + th[:, 2] * q[1]) * g
-            * np.cos(q[0]),
-            -th[:, 2] * q[1] * qd[0] ** 2 + th[:, 2] * g * np.sin(q[0]),
-        ], axis=-1)
+        return np.stack(
+            [
+                2 * th[:, 2] * q[1] * qd[0] * qd[1]
+                + (th[:, 0] * th[:, 1] + th[:, 2] * q[1]) * g * np.cos(q[0]),
+                -th[:, 2] * q[1] * qd[0] ** 2 + th[:, 2] * g * np.sin(q[0]),
+            ],
+            axis=-1,
+        )
 
 
 @pytest.mark.parametrize("mode", rmijax.MODES)
 def test_user_robot_model(mode):
-    model = rmijax.RobotModel(2, 3, toy_mass_matrix, toy_bias, name="rp_toy",
-                              param_names=("m1", "c1", "m2"))
+    model = rmijax.RobotModel(
+        2, 3, toy_mass_matrix, toy_bias, name="rp_toy", param_names=("m1", "c1", "m2")
+    )
     params = rmijax.uncertain_robot(model, [4.0, 0.5, 2.0], [3.5, 0.45, 1.6], [4.8, 0.52, 2.3])
     traj = rmijax.trajectory(["sine", lambda t: 1.0 + 0.2 * jnp.sin(2.0 * t)], duration=0.4)
     bounds = rmijax.rmi(traj, params, mode=mode, window=12)
     lower, upper, _ = rmi_reference(
-        ToyNumpy(), np.asarray(traj.q_d), np.asarray(traj.qd_d), np.asarray(traj.qdd_d),
-        np.asarray(traj.kp), np.asarray(traj.kd), traj.dt, np.asarray(params.nominal),
-        np.asarray(params.lo), np.asarray(params.hi), mode=mode, window=12,
+        ToyNumpy(),
+        np.asarray(traj.q_d),
+        np.asarray(traj.qd_d),
+        np.asarray(traj.qdd_d),
+        np.asarray(traj.kp),
+        np.asarray(traj.kd),
+        traj.dt,
+        np.asarray(params.nominal),
+        np.asarray(params.lo),
+        np.asarray(params.hi),
+        mode=mode,
+        window=12,
     )
     np.testing.assert_allclose(bounds.lower, lower, rtol=0, atol=1e-10)
     np.testing.assert_allclose(bounds.upper, upper, rtol=0, atol=1e-10)
@@ -166,20 +196,21 @@ def test_online_equals_offline(mode):
     @jax.jit
     @chex.assert_max_traces(n=1)
     def online(traj, params, t_f):
-        return rmijax.rmi_step(traj, params, t_f, mode=mode, window=60, noise_lo=-0.001,
-                               noise_hi=0.002)
+        return rmijax.rmi_step(
+            traj, params, t_f, mode=mode, window=60, noise_lo=-0.001, noise_hi=0.002
+        )
 
     for t_f in [0, 1, 2, 59, 60, 61, 137, traj.n_steps]:
         step = online(traj, params, t_f)
         assert step.lower.shape == (2, 2)
         for key in ("lower", "upper", "nominal"):
-            np.testing.assert_allclose(getattr(step, key), getattr(offline, key)[t_f],
-                                       rtol=0, atol=1e-12)
+            np.testing.assert_allclose(
+                getattr(step, key), getattr(offline, key)[t_f], rtol=0, atol=1e-12
+            )
     # New data of the same shape: still one trace.
     other = dataclasses.replace(traj, u_d=traj.u_d * 1.01)
     online(other, params.with_box(hi=params.hi * 1.01), 5)
-    eager = rmijax.rmi_step(traj, params, 61, mode=mode, window=60, noise_lo=-0.001,
-                            noise_hi=0.002)
+    eager = rmijax.rmi_step(traj, params, 61, mode=mode, window=60, noise_lo=-0.001, noise_hi=0.002)
     np.testing.assert_allclose(eager.upper, offline.upper[61], rtol=0, atol=1e-12)
 
 
@@ -210,10 +241,12 @@ def test_noise_bounds_shift_the_bands():
     clean = rmijax.rmi(traj, params, window=30)
     per_output = np.array([[-0.001, -0.01], [-0.002, -0.02]])
     noisy = rmijax.rmi(traj, params, window=30, noise_lo=per_output, noise_hi=[0.003, 0.03])
-    np.testing.assert_allclose(noisy.lower - clean.lower,
-                               np.broadcast_to(per_output, clean.lower.shape), atol=1e-15)
-    np.testing.assert_allclose(noisy.upper - clean.upper,
-                               np.broadcast_to([0.003, 0.03], clean.upper.shape), atol=1e-15)
+    np.testing.assert_allclose(
+        noisy.lower - clean.lower, np.broadcast_to(per_output, clean.lower.shape), atol=1e-15
+    )
+    np.testing.assert_allclose(
+        noisy.upper - clean.upper, np.broadcast_to([0.003, 0.03], clean.upper.shape), atol=1e-15
+    )
     scalar = rmijax.rmi(traj, params, window=30, noise_lo=-0.5, noise_hi=0.5)
     np.testing.assert_allclose(scalar.width - clean.width, 1.0, atol=1e-14)
 
@@ -235,8 +268,7 @@ def test_crossed_bounds_warn_and_are_not_swapped():
     # Noise bounds cannot cross (noise_lo <= noise_hi is enforced); the greedy tracks
     # can: with a very wide box the max track ends below the min track at some steps.
     traj = rmijax.trajectory(["composite", "sine"], duration=3.0)
-    params = rmijax.planar_arm([12.0, 10.0, 1.5, 1.0], [1.0, 1.0, 1.0, 0.5],
-                               [40.0, 40.0, 2.0, 1.5])
+    params = rmijax.planar_arm([12.0, 10.0, 1.5, 1.0], [1.0, 1.0, 1.0, 0.5], [40.0, 40.0, 2.0, 1.5])
     with pytest.warns(RuntimeWarning, match=r"bounds crossed \(upper < lower\)"):
         bounds = rmijax.rmi(traj, params, mode="coupled", window=100)
     crossed = np.asarray(bounds.upper) < np.asarray(bounds.lower)
@@ -290,6 +322,22 @@ def test_bad_inputs(small):
         rmijax.rmi_step(traj, params, 51)
     with pytest.raises(ValueError, match="t_f must be an integer"):
         rmijax.rmi_step(traj, params, 3.5)
+
+
+@pytest.mark.parametrize("mode", rmijax.MODES)
+@pytest.mark.parametrize("n, batch", [(3, 1), (4, 1), (4, 3)])
+def test_memory_estimate_bounds_xla_buffers(n, batch, mode):
+    """The chunk sizing is honest: XLA's own temp-buffer analysis stays under the estimate."""
+    from rmijax import engine
+
+    params = rmijax.preset_arm(n)
+    traj = rmijax.trajectory(["sine"] * n, duration=0.1)
+    noise = jnp.zeros((n, 2))
+    compiled = engine._rmi_all.lower(
+        traj, params, noise, noise, mode=mode, window=100, batch=batch
+    ).compile()
+    temp = compiled.memory_analysis().temp_size_in_bytes
+    assert temp <= batch * rmijax.estimate_memory(params, mode=mode)
 
 
 def test_memory_estimate_scales_with_corners():

@@ -7,6 +7,7 @@ import pytest
 
 import rmijax
 from rmijax.model import planar_bias, planar_forward_dynamics, planar_mass_matrix
+
 from reference_numpy import PlanarArmNumpy
 
 G = rmijax.GRAVITY
@@ -101,10 +102,12 @@ def test_numpy_reference_model_agrees(rng, n):
     """The NumPy reference's triple-sum model (the engine's oracle) matches the JAX model."""
     reference = PlanarArmNumpy(n)
     q, qd, th = random_state(rng, n)
-    np.testing.assert_allclose(reference.mass_matrix(q, th)[0], planar_mass_matrix(q, th),
-                               rtol=1e-12, atol=1e-12)
-    np.testing.assert_allclose(reference.bias(q, qd, th)[0], planar_bias(q, qd, th),
-                               rtol=1e-11, atol=1e-10)
+    np.testing.assert_allclose(
+        reference.mass_matrix(q, th)[0], planar_mass_matrix(q, th), rtol=1e-12, atol=1e-12
+    )
+    np.testing.assert_allclose(
+        reference.bias(q, qd, th)[0], planar_bias(q, qd, th), rtol=1e-11, atol=1e-10
+    )
 
 
 def test_model_validation():

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 import rmijax
+
 from reference_numpy import closed_loop
 
 
@@ -20,8 +21,14 @@ def test_grid_and_named_paths():
         [np.sin(t), t, np.sin(t) + np.cos(0.5 * t) + 0.1 * (15 - t), np.sin(0.2 * t), 0 * t], -1
     )
     expected_qd = np.stack(
-        [np.cos(t), 1 + 0 * t, np.cos(t) - 0.5 * np.sin(0.5 * t) - 0.1, 0.2 * np.cos(0.2 * t),
-         0 * t], -1
+        [
+            np.cos(t),
+            1 + 0 * t,
+            np.cos(t) - 0.5 * np.sin(0.5 * t) - 0.1,
+            0.2 * np.cos(0.2 * t),
+            0 * t,
+        ],
+        -1,
     )
     expected_qdd = np.stack(
         [-np.sin(t), 0 * t, -np.sin(t) - 0.25 * np.cos(0.5 * t), -0.04 * np.sin(0.2 * t), 0 * t],

@@ -6,35 +6,71 @@ Importing rmijax changes no JAX configuration: choose float64 yourself with
 
 from rmijax.control import (
     closed_loop_step as closed_loop_step,
+)
+from rmijax.control import (
     coupled_perturbation as coupled_perturbation,
 )
 from rmijax.engine import (
     DEFAULT_MEMORY_BUDGET as DEFAULT_MEMORY_BUDGET,
+)
+from rmijax.engine import (
     MODES as MODES,
+)
+from rmijax.engine import (
     Bounds as Bounds,
+)
+from rmijax.engine import (
     ProblemTooLargeError as ProblemTooLargeError,
+)
+from rmijax.engine import (
     estimate_memory as estimate_memory,
+)
+from rmijax.engine import (
     rmi as rmi,
+)
+from rmijax.engine import (
     rmi_step as rmi_step,
 )
 from rmijax.model import (
     GRAVITY as GRAVITY,
+)
+from rmijax.model import (
     RobotModel as RobotModel,
+)
+from rmijax.model import (
     planar_arm_model as planar_arm_model,
 )
 from rmijax.params import (
     UncertainRobot as UncertainRobot,
+)
+from rmijax.params import (
     corner_tensor as corner_tensor,
+)
+from rmijax.params import (
     paper_arm2 as paper_arm2,
+)
+from rmijax.params import (
     paper_pendulum as paper_pendulum,
+)
+from rmijax.params import (
     planar_arm as planar_arm,
+)
+from rmijax.params import (
     preset_arm as preset_arm,
+)
+from rmijax.params import (
     uncertain_robot as uncertain_robot,
 )
 from rmijax.trajectory import (
     PATHS as PATHS,
+)
+from rmijax.trajectory import (
     Trajectory as Trajectory,
+)
+from rmijax.trajectory import (
     trajectory as trajectory,
+)
+from rmijax.trajectory import (
     trajectory_from_samples as trajectory_from_samples,
 )
 

@@ -59,8 +59,7 @@ def per_joint(name, value, n, dtype):
         array = jnp.full((n,), array, dtype=dtype)
     if array.shape != (n,):
         raise ValueError(
-            f"{name} must be a scalar or have shape ({n},) (one per joint), "
-            f"got shape {array.shape}"
+            f"{name} must be a scalar or have shape ({n},) (one per joint), got shape {array.shape}"
         )
     check_finite(name, array)
     return array
@@ -71,7 +70,7 @@ def closed_loop_radius(kp, kd, dt):
     kp = np.atleast_1d(np.asarray(kp, dtype=np.float64))
     kd = np.atleast_1d(np.asarray(kd, dtype=np.float64))
     radii = []
-    for kp_i, kd_i in zip(kp, kd):
+    for kp_i, kd_i in zip(kp, kd, strict=True):
         a = np.array([[1.0, dt], [-kp_i * dt, 1.0 - kd_i * dt]])
         radii.append(np.max(np.abs(np.linalg.eigvals(a))))
     return np.array(radii)

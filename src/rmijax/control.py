@@ -9,8 +9,6 @@ engine and the plant simulation so that all three step the same way.
 
 from __future__ import annotations
 
-import jax.numpy as jnp
-
 __all__ = [
     "closed_loop_step",
     "computed_torque",

@@ -192,9 +192,7 @@ def preset_arm(n: int, *, dtype=None) -> UncertainRobot:
     lengths = [1.5] + [1.0] * (n - 1)
     lengths_lo = [1.49] + [0.99] * (n - 1)
     lengths_hi = [1.51] + [1.01] * (n - 1)
-    return planar_arm(
-        masses + lengths, masses_lo + lengths_lo, masses_hi + lengths_hi, dtype=dtype
-    )
+    return planar_arm(masses + lengths, masses_lo + lengths_lo, masses_hi + lengths_hi, dtype=dtype)
 
 
 def paper_arm2(*, dtype=None) -> UncertainRobot:

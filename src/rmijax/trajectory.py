@@ -166,8 +166,7 @@ def _resolve_path(path, joint):
     if callable(path):
         return getattr(path, "__name__", "custom"), path
     raise TypeError(
-        f"paths[{joint}] must be a path name {sorted(PATHS)} or a function of time, "
-        f"got {path!r}"
+        f"paths[{joint}] must be a path name {sorted(PATHS)} or a function of time, got {path!r}"
     )
 
 
