@@ -206,3 +206,57 @@ def simulate_plant(model, q_d, qd_d, qdd_d, kp, kd, dt, nominal, th_true):
             x[r, k + 1, :, 0] = q + dt * qd
             x[r, k + 1, :, 1] = qd + dt * qdd
     return x
+
+
+def simulate_faults(model, q_d, qd_d, qdd_d, kp, kd, dt, nominal, th_true, faults, noise):
+    """Plain plant simulation with faults (SPEC section 7): true states and readings (T+1, n, 2).
+
+    ``faults`` are ``(kind, joint, onset_step, value, sensor)`` tuples; ``noise``
+    is the (T+1, n, 2) noise added to healthy readings.
+    """
+    n_samples, n = q_d.shape
+    u_d = qdd_d + kd * qd_d + kp * q_d
+    x = np.zeros((n_samples, n, 2))
+    y = np.zeros((n_samples, n, 2))
+    x[0, :, 0], x[0, :, 1] = q_d[0], qd_d[0]
+    held = {}
+    for k in range(n_samples):
+        state = x[k].copy()
+        locked = [j for (kind, j, on, _, _) in faults if kind == "locked" and k >= on]
+        for j in locked:
+            state[j, 1] = 0.0
+        x[k] = state
+        reading = state + noise[k]
+        for kind, j, on, value, sensor in faults:
+            if k < on:
+                continue
+            outputs = {"stuck_encoder": [0], "stuck_tach": [1], "stuck_sensors": [0]}.get(kind, [])
+            for s in outputs:
+                if k == on:
+                    held[(j, s)] = reading[j, s]
+                reading[j, s] = held[(j, s)]
+            if kind == "stuck_sensors":
+                reading[j, 1] = 0.0
+        for kind, j, on, value, sensor in faults:
+            if k >= on and kind == "bias":
+                reading[j, sensor] += value
+            if k >= on and kind == "drift":
+                reading[j, sensor] += value * (k * dt - on * dt)
+        y[k] = reading
+        if k == n_samples - 1:
+            break
+        q, qd = state[:, 0], state[:, 1]
+        qm, qdm = reading[:, 0], reading[:, 1]
+        v = u_d[k] - kd * qdm - kp * qm
+        tau = model.mass_matrix(qm, nominal)[0] @ v + model.bias(qm, qdm, nominal)[0]
+        for kind, j, on, _, _ in faults:
+            if kind == "free_swinging" and k >= on:
+                tau[j] = 0.0
+        mass = model.mass_matrix(q, th_true)[0]
+        rhs = tau - model.bias(q, qd, th_true)[0]
+        free = [j for j in range(n) if j not in locked]
+        qdd = np.zeros(n)
+        qdd[free] = np.linalg.solve(mass[np.ix_(free, free)], rhs[free])
+        x[k + 1, :, 0] = q + dt * qd
+        x[k + 1, :, 1] = qd + dt * qdd
+    return x, y

@@ -10,23 +10,72 @@ from rmijax.control import (
 from rmijax.control import (
     coupled_perturbation as coupled_perturbation,
 )
+from rmijax.detect import (
+    Detection as Detection,
+    containment as containment,
+    detect as detect,
+    empirical_thresholds as empirical_thresholds,
+    monte_carlo_parameters as monte_carlo_parameters,
+)
 from rmijax.engine import (
     DEFAULT_MEMORY_BUDGET as DEFAULT_MEMORY_BUDGET,
+)
+from rmijax.detect import (
+    Detection as Detection,
+    containment as containment,
+    detect as detect,
+    empirical_thresholds as empirical_thresholds,
+    monte_carlo_parameters as monte_carlo_parameters,
 )
 from rmijax.engine import (
     MODES as MODES,
 )
+from rmijax.detect import (
+    Detection as Detection,
+    containment as containment,
+    detect as detect,
+    empirical_thresholds as empirical_thresholds,
+    monte_carlo_parameters as monte_carlo_parameters,
+)
 from rmijax.engine import (
     Bounds as Bounds,
+)
+from rmijax.detect import (
+    Detection as Detection,
+    containment as containment,
+    detect as detect,
+    empirical_thresholds as empirical_thresholds,
+    monte_carlo_parameters as monte_carlo_parameters,
 )
 from rmijax.engine import (
     ProblemTooLargeError as ProblemTooLargeError,
 )
+from rmijax.detect import (
+    Detection as Detection,
+    containment as containment,
+    detect as detect,
+    empirical_thresholds as empirical_thresholds,
+    monte_carlo_parameters as monte_carlo_parameters,
+)
 from rmijax.engine import (
     estimate_memory as estimate_memory,
 )
+from rmijax.detect import (
+    Detection as Detection,
+    containment as containment,
+    detect as detect,
+    empirical_thresholds as empirical_thresholds,
+    monte_carlo_parameters as monte_carlo_parameters,
+)
 from rmijax.engine import (
     rmi as rmi,
+)
+from rmijax.detect import (
+    Detection as Detection,
+    containment as containment,
+    detect as detect,
+    empirical_thresholds as empirical_thresholds,
+    monte_carlo_parameters as monte_carlo_parameters,
 )
 from rmijax.engine import (
     rmi_step as rmi_step,
@@ -61,14 +110,34 @@ from rmijax.params import (
 from rmijax.params import (
     uncertain_robot as uncertain_robot,
 )
+from rmijax.simulate import (
+    FAULT_KINDS as FAULT_KINDS,
+    Fault as Fault,
+    simulate as simulate,
+)
 from rmijax.trajectory import (
     PATHS as PATHS,
+)
+from rmijax.simulate import (
+    FAULT_KINDS as FAULT_KINDS,
+    Fault as Fault,
+    simulate as simulate,
 )
 from rmijax.trajectory import (
     Trajectory as Trajectory,
 )
+from rmijax.simulate import (
+    FAULT_KINDS as FAULT_KINDS,
+    Fault as Fault,
+    simulate as simulate,
+)
 from rmijax.trajectory import (
     trajectory as trajectory,
+)
+from rmijax.simulate import (
+    FAULT_KINDS as FAULT_KINDS,
+    Fault as Fault,
+    simulate as simulate,
 )
 from rmijax.trajectory import (
     trajectory_from_samples as trajectory_from_samples,
@@ -78,18 +147,25 @@ __version__ = "0.1.0"
 
 __all__ = [
     "DEFAULT_MEMORY_BUDGET",
+    "FAULT_KINDS",
     "GRAVITY",
     "MODES",
     "PATHS",
     "Bounds",
+    "Detection",
+    "Fault",
     "ProblemTooLargeError",
     "RobotModel",
     "Trajectory",
     "UncertainRobot",
     "closed_loop_step",
+    "containment",
     "corner_tensor",
     "coupled_perturbation",
+    "detect",
+    "empirical_thresholds",
     "estimate_memory",
+    "monte_carlo_parameters",
     "paper_arm2",
     "paper_pendulum",
     "planar_arm",
@@ -97,6 +173,7 @@ __all__ = [
     "preset_arm",
     "rmi",
     "rmi_step",
+    "simulate",
     "trajectory",
     "trajectory_from_samples",
     "uncertain_robot",

@@ -63,12 +63,14 @@ class Bounds:
         nominal: the nominal output ``c x_n(t_f)``, same shape.
         crossed: bool mask, same shape, where ``upper < lower`` (the greedy
             max track ended below the min track); never swapped silently.
+        dt: the step in s of the grid the bounds live on (static), or None.
     """
 
     lower: jax.Array
     upper: jax.Array
     nominal: jax.Array
     crossed: jax.Array
+    dt: float | None = dataclasses.field(default=None, metadata=dict(static=True))
 
     @property
     def width(self) -> jax.Array:
@@ -311,11 +313,11 @@ def _window_extremes(t_f, data, model, mode, window, dt):
     return values.reshape(2, n, 2)
 
 
-def _assemble(extremes, nominal, noise_lo, noise_hi):
+def _assemble(extremes, nominal, noise_lo, noise_hi, dt):
     shape = extremes[..., 0, :, :].shape
     upper = extremes[..., 0, :, :] + jnp.broadcast_to(noise_hi, shape)
     lower = extremes[..., 1, :, :] + jnp.broadcast_to(noise_lo, shape)
-    return Bounds(lower=lower, upper=upper, nominal=nominal, crossed=upper < lower)
+    return Bounds(lower=lower, upper=upper, nominal=nominal, crossed=upper < lower, dt=dt)
 
 
 @functools.partial(jax.jit, static_argnames=("mode", "window", "batch"))
@@ -327,7 +329,7 @@ def _rmi_all(traj, params, noise_lo, noise_hi, *, mode, window, batch):
     )
     end_steps = jnp.arange(traj.n_steps + 1)
     extremes = jax.lax.map(fn, end_steps, batch_size=batch)  # (T+1, 2, n, 2)
-    return _assemble(extremes, data["x_n"], noise_lo, noise_hi)
+    return _assemble(extremes, data["x_n"], noise_lo, noise_hi, traj.dt)
 
 
 @functools.partial(jax.jit, static_argnames=("mode", "window"))
@@ -344,7 +346,7 @@ def _rmi_one(traj, params, t_f, noise_lo, noise_hi, *, mode, window):
     dtype = noise_lo.dtype
     data = _window_data(traj, params, window, dtype)
     extremes = _window_extremes(t_f, data, params.model, mode, window, traj.dt)
-    return _assemble(extremes, data["x_n"][t_f], noise_lo, noise_hi)
+    return _assemble(extremes, data["x_n"][t_f], noise_lo, noise_hi, traj.dt)
 
 
 def _cast(traj, params, dtype):
@@ -430,7 +432,7 @@ def _rmi_with_progress(traj, params, lo, hi, mode, window, batch):
             pieces.append(extremes)
             bar.update(min(batch, n_end - chunk * batch))
     extremes = jnp.concatenate(pieces, axis=0)[:n_end]
-    return _assemble(extremes, traj.x_n, lo, hi)
+    return _assemble(extremes, traj.x_n, lo, hi, traj.dt)
 
 
 def rmi_step(
