@@ -10,31 +10,12 @@ import jax
 
 jax.config.update("jax_enable_x64", True)  # this script chooses float64
 
-import jax.numpy as jnp  # noqa: E402
 import matplotlib  # noqa: E402
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 import rmijax  # noqa: E402
-
-
-def true_run(traj, params, th_true):
-    """The true closed loop with constant parameters th_true: states (T+1, n, 2)."""
-    gv = jax.vmap(
-        lambda x, u: rmijax.coupled_perturbation(
-            params.model, th_true, params.nominal, x[:, 0], x[:, 1], u, traj.kp, traj.kd
-        )
-    )
-
-    def step(x, u):
-        g = gv(x[None], u[None])[0]
-        q, qd = rmijax.closed_loop_step(x[:, 0], x[:, 1], u, g, traj.kp, traj.kd, traj.dt)
-        nxt = jnp.stack([q, qd], -1)
-        return nxt, nxt
-
-    _, rest = jax.lax.scan(step, traj.x_n[0], traj.u_d[:-1])
-    return jnp.concatenate([traj.x_n[:1], rest])
 
 
 def main():
@@ -52,8 +33,8 @@ def main():
         "(compile included)"
     )
 
-    th_true = params.nominal * jnp.array([1.08, 1.08, 1.0, 1.0]) - jnp.array([0, 0, 0.005, 0.005])
-    states = true_run(traj, params, th_true)  # the paper's true robot
+    th_true = rmijax.experiments.paper_true_parameters(params)  # masses x1.08, lengths -5 mm
+    states, _ = rmijax.simulate(traj, params, th_true)  # the true robot, no fault
     inside = (states >= bounds.lower - 1e-9) & (states <= bounds.upper + 1e-9)
     print(f"true run inside the bounds at {float(inside.mean()) * 100:.2f}% of samples")
 

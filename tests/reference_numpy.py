@@ -227,7 +227,7 @@ def simulate_faults(model, q_d, qd_d, qdd_d, kp, kd, dt, nominal, th_true, fault
             state[j, 1] = 0.0
         x[k] = state
         reading = state + noise[k]
-        for kind, j, on, value, sensor in faults:
+        for kind, j, on, _value, _sensor in faults:
             if k < on:
                 continue
             outputs = {"stuck_encoder": [0], "stuck_tach": [1], "stuck_sensors": [0]}.get(kind, [])

@@ -8,8 +8,9 @@ import rmijax
 
 def band(n_samples=10, n=1, dt=0.1):
     zeros = np.zeros((n_samples, n, 2))
-    return rmijax.Bounds(lower=zeros - 1.0, upper=zeros + 1.0, nominal=zeros,
-                         crossed=zeros.astype(bool), dt=dt)
+    return rmijax.Bounds(
+        lower=zeros - 1.0, upper=zeros + 1.0, nominal=zeros, crossed=zeros.astype(bool), dt=dt
+    )
 
 
 def test_alarm_latency_false_alarms_and_persistence():
@@ -62,7 +63,7 @@ def paper():
     """The paper's fault case: two-joint arm, hold/sine, masses x1.08, lengths -5 mm."""
     params = rmijax.paper_arm2()
     traj = rmijax.trajectory(["hold", "sine"])
-    th = np.asarray(params.nominal) * np.array([1.08, 1.08, 1, 1]) - [0, 0, 0.005, 0.005]
+    th = rmijax.experiments.paper_true_parameters(params)
     return params, traj, th, rmijax.rmi(traj, params)
 
 

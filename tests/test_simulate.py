@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 import rmijax
+
 from reference_numpy import PlanarArmNumpy, simulate_faults
 
 
@@ -16,7 +17,7 @@ def arm():
 
 
 def paper_truth(params):
-    return np.asarray(params.nominal) * np.array([1.08, 1.08, 1, 1]) - np.array([0, 0, 0.005, 0.005])
+    return rmijax.experiments.paper_true_parameters(params)
 
 
 def test_fault_free_nominal_run_equals_rmi_nominal(arm):
@@ -35,8 +36,11 @@ CASES = [
     [rmijax.Fault("drift", 1, 0.3, value=-0.1, sensor=1)],
     [rmijax.Fault("free_swinging", 1, 1.2)],
     [rmijax.Fault("locked", 0, 0.8)],
-    [rmijax.Fault("locked", 1, 0.5), rmijax.Fault("bias", 0, 0.2, value=0.01, sensor=1),
-     rmijax.Fault("stuck_encoder", 1, 1.5)],
+    [
+        rmijax.Fault("locked", 1, 0.5),
+        rmijax.Fault("bias", 0, 0.2, value=0.01, sensor=1),
+        rmijax.Fault("stuck_encoder", 1, 1.5),
+    ],
 ]
 
 
@@ -44,19 +48,29 @@ CASES = [
 def test_faults_equal_numpy_simulation(arm, faults):
     params, traj = arm
     th = paper_truth(params)
-    x_true, y_meas = rmijax.simulate(traj, params, th, faults=faults, noise_lo=[-1e-3, -1e-2],
-                                     noise_hi=1e-3, seed=3)
+    x_true, y_meas = rmijax.simulate(
+        traj, params, th, faults=faults, noise_lo=[-1e-3, -1e-2], noise_hi=1e-3, seed=3
+    )
     steps = [(f.kind, f.joint, int(round(f.onset / traj.dt)), f.value, f.sensor) for f in faults]
     # The same noise, drawn by the simulator with the same seed in a fault-free run.
-    clean_x, clean_y = rmijax.simulate(traj, params, th, noise_lo=[-1e-3, -1e-2], noise_hi=1e-3,
-                                       seed=3)
+    clean_x, clean_y = rmijax.simulate(
+        traj, params, th, noise_lo=[-1e-3, -1e-2], noise_hi=1e-3, seed=3
+    )
     noise = np.asarray(clean_y - clean_x)
     assert noise.shape == x_true.shape and np.abs(noise).max() > 1e-4
     assert np.all(noise[..., 0] >= -1e-3) and np.all(noise[..., 1] <= 1e-3)
     x_ref, y_ref = simulate_faults(
-        PlanarArmNumpy(2), np.asarray(traj.q_d), np.asarray(traj.qd_d), np.asarray(traj.qdd_d),
-        np.asarray(traj.kp), np.asarray(traj.kd), traj.dt, np.asarray(params.nominal), th,
-        steps, noise,
+        PlanarArmNumpy(2),
+        np.asarray(traj.q_d),
+        np.asarray(traj.qd_d),
+        np.asarray(traj.qdd_d),
+        np.asarray(traj.kp),
+        np.asarray(traj.kd),
+        traj.dt,
+        np.asarray(params.nominal),
+        th,
+        steps,
+        noise,
     )
     np.testing.assert_allclose(x_true, x_ref, rtol=0, atol=1e-9)
     np.testing.assert_allclose(y_meas, y_ref, rtol=0, atol=1e-9)

@@ -4,6 +4,7 @@ Importing rmijax changes no JAX configuration: choose float64 yourself with
 ``jax.config.update("jax_enable_x64", True)`` (or pass float64 arrays).
 """
 
+from rmijax import experiments as experiments  # noqa: E402  (the paper's runs)
 from rmijax.control import (
     closed_loop_step as closed_loop_step,
 )
@@ -12,70 +13,36 @@ from rmijax.control import (
 )
 from rmijax.detect import (
     Detection as Detection,
+)
+from rmijax.detect import (
     containment as containment,
+)
+from rmijax.detect import (
     detect as detect,
+)
+from rmijax.detect import (
     empirical_thresholds as empirical_thresholds,
+)
+from rmijax.detect import (
     monte_carlo_parameters as monte_carlo_parameters,
 )
 from rmijax.engine import (
     DEFAULT_MEMORY_BUDGET as DEFAULT_MEMORY_BUDGET,
 )
-from rmijax.detect import (
-    Detection as Detection,
-    containment as containment,
-    detect as detect,
-    empirical_thresholds as empirical_thresholds,
-    monte_carlo_parameters as monte_carlo_parameters,
-)
 from rmijax.engine import (
     MODES as MODES,
-)
-from rmijax.detect import (
-    Detection as Detection,
-    containment as containment,
-    detect as detect,
-    empirical_thresholds as empirical_thresholds,
-    monte_carlo_parameters as monte_carlo_parameters,
 )
 from rmijax.engine import (
     Bounds as Bounds,
 )
-from rmijax.detect import (
-    Detection as Detection,
-    containment as containment,
-    detect as detect,
-    empirical_thresholds as empirical_thresholds,
-    monte_carlo_parameters as monte_carlo_parameters,
-)
 from rmijax.engine import (
     ProblemTooLargeError as ProblemTooLargeError,
-)
-from rmijax.detect import (
-    Detection as Detection,
-    containment as containment,
-    detect as detect,
-    empirical_thresholds as empirical_thresholds,
-    monte_carlo_parameters as monte_carlo_parameters,
 )
 from rmijax.engine import (
     estimate_memory as estimate_memory,
 )
-from rmijax.detect import (
-    Detection as Detection,
-    containment as containment,
-    detect as detect,
-    empirical_thresholds as empirical_thresholds,
-    monte_carlo_parameters as monte_carlo_parameters,
-)
 from rmijax.engine import (
     rmi as rmi,
-)
-from rmijax.detect import (
-    Detection as Detection,
-    containment as containment,
-    detect as detect,
-    empirical_thresholds as empirical_thresholds,
-    monte_carlo_parameters as monte_carlo_parameters,
 )
 from rmijax.engine import (
     rmi_step as rmi_step,
@@ -112,32 +79,21 @@ from rmijax.params import (
 )
 from rmijax.simulate import (
     FAULT_KINDS as FAULT_KINDS,
+)
+from rmijax.simulate import (
     Fault as Fault,
+)
+from rmijax.simulate import (
     simulate as simulate,
 )
 from rmijax.trajectory import (
     PATHS as PATHS,
 )
-from rmijax.simulate import (
-    FAULT_KINDS as FAULT_KINDS,
-    Fault as Fault,
-    simulate as simulate,
-)
 from rmijax.trajectory import (
     Trajectory as Trajectory,
 )
-from rmijax.simulate import (
-    FAULT_KINDS as FAULT_KINDS,
-    Fault as Fault,
-    simulate as simulate,
-)
 from rmijax.trajectory import (
     trajectory as trajectory,
-)
-from rmijax.simulate import (
-    FAULT_KINDS as FAULT_KINDS,
-    Fault as Fault,
-    simulate as simulate,
 )
 from rmijax.trajectory import (
     trajectory_from_samples as trajectory_from_samples,
@@ -165,6 +121,7 @@ __all__ = [
     "detect",
     "empirical_thresholds",
     "estimate_memory",
+    "experiments",
     "monte_carlo_parameters",
     "paper_arm2",
     "paper_pendulum",

@@ -184,8 +184,9 @@ def detect(
     )
 
 
-def monte_carlo_parameters(params: UncertainRobot, draws: int, *, seed: int = 0,
-                           corners: bool = True) -> np.ndarray:
+def monte_carlo_parameters(
+    params: UncertainRobot, draws: int, *, seed: int = 0, corners: bool = True
+) -> np.ndarray:
     """True-parameter sets for containment checks: all corners (if asked) plus uniform draws.
 
     Returns:

@@ -176,9 +176,7 @@ def _run(traj, params, th, noise, tables, limit):
         reading = jnp.where(k >= tables.zero_onset, 0.0, reading)
         reading = reading + jnp.where(k >= tables.bias_onset, tables.bias_value, 0.0)
         drift_time = t - tables.drift_onset.astype(t.dtype) * dt
-        reading = reading + jnp.where(
-            k >= tables.drift_onset, tables.drift_rate * drift_time, 0.0
-        )
+        reading = reading + jnp.where(k >= tables.drift_onset, tables.drift_rate * drift_time, 0.0)
         return reading, held
 
     def step(carry, inputs):
@@ -203,9 +201,7 @@ def _run(traj, params, th, noise, tables, limit):
         return (nxt, held, diverged_now), (x, reading)
 
     init = (traj.x_n[0], jnp.zeros_like(traj.x_n[0]), jnp.asarray(_NEVER, jnp.int32))
-    (_, _, diverged), (states, readings) = jax.lax.scan(
-        step, init, (steps, times, traj.u_d, noise)
-    )
+    (_, _, diverged), (states, readings) = jax.lax.scan(step, init, (steps, times, traj.u_d, noise))
     after = (steps >= diverged)[:, None, None]
     states = jnp.where(after, jnp.nan, states)
     readings = jnp.where(after, jnp.nan, readings)
