@@ -35,9 +35,12 @@ __all__ = [
     "MODES",
     "Bounds",
     "ProblemTooLargeError",
+    "check_memory",
+    "costate_weights",
     "estimate_memory",
     "rmi",
     "rmi_step",
+    "window_extremes",
 ]
 
 MODES = ("coupled", "per_joint")
@@ -145,6 +148,11 @@ def estimate_memory(params: UncertainRobot, *, mode="coupled", window=100, dtype
     return tracks * k * itemsize * per_value
 
 
+def check_memory(params, *, mode="coupled", window=100, dtype=None, budget=DEFAULT_MEMORY_BUDGET):
+    """Raise :class:`ProblemTooLargeError` if one end step's window does not fit ``budget``."""
+    _batch_size(params, mode, window, dtype or params.dtype, budget, 1, None)
+
+
 def _batch_size(params, mode, window, dtype, budget, n_end_steps, chunk_size):
     per_end_step = estimate_memory(params, mode=mode, window=window, dtype=dtype)
     if per_end_step > budget:
@@ -169,15 +177,14 @@ def _batch_size(params, mode, window, dtype, budget, n_end_steps, chunk_size):
     return int(max(1, min(budget // per_end_step, _MAX_BATCH, n_end_steps)))
 
 
-def _window_data(traj, params, window, dtype):
-    """Arrays one window needs, padded so that any end step slices a fixed length."""
-    n, size = traj.n_joints, window
-    cast = functools.partial(jnp.asarray, dtype=dtype)
-    kp, kd, dt = cast(traj.kp), cast(traj.kd), traj.dt
+def costate_weights(kp, kd, dt, window):
+    """Velocity part of the costate per window step: (N, n, 2) [step, joint, sensor].
 
-    # Costate L(k+1) = (A_i')^(N-1-s) c for window step s; only its velocity
-    # component weighs gv. Iterated as L(k) = A' L(k+1), like the definition.
-    # Arrays are (n, 2 sensors): c = (1, 0) for the encoder, (0, 1) for the tachometer.
+    ``L(k+1) = (A_i')^(N-1-s) c`` for window step ``s``, iterated as
+    ``L(k) = A' L(k+1)`` like the definition; ``c = (1, 0)`` for the encoder
+    and ``(0, 1)`` for the tachometer. Only the velocity part weighs ``gv``.
+    """
+    n, dtype = kp.shape[0], kp.dtype
     kp_col, kd_col = kp[:, None], kd[:, None]
 
     def back(costate, _):
@@ -187,19 +194,25 @@ def _window_data(traj, params, window, dtype):
 
     eye = jnp.eye(2, dtype=dtype)
     start = (jnp.broadcast_to(eye[0], (n, 2)), jnp.broadcast_to(eye[1], (n, 2)))
-    _, vel_weights = jax.lax.scan(back, start, None, length=size)
-    weights = jnp.flip(vel_weights, 0)  # (N, n, 2): step s weighs with (A')^(N-1-s) c
+    _, vel_weights = jax.lax.scan(back, start, None, length=window)
+    return jnp.flip(vel_weights, 0)  # step s weighs with (A')^(N-1-s) c
+
+
+def _window_data(traj, params, window, dtype):
+    """Arrays one window needs, padded so that any end step slices a fixed length."""
+    cast = functools.partial(jnp.asarray, dtype=dtype)
+    kp, kd = cast(traj.kp), cast(traj.kd)
 
     def pad(x):
         x = cast(x)
-        return jnp.concatenate([jnp.zeros((size,) + x.shape[1:], dtype), x], axis=0)
+        return jnp.concatenate([jnp.zeros((window,) + x.shape[1:], dtype), x], axis=0)
 
     return dict(
         u=pad(traj.u_d),
         x_n=cast(traj.x_n),
         x_pad=pad(traj.x_n),
         qdd_pad=pad(traj.qdd_n),
-        weights=weights,
+        weights=costate_weights(kp, kd, traj.dt, window),
         corners=cast(params.corners),
         nominal=cast(params.nominal),
         kp=kp,
@@ -233,19 +246,43 @@ def _tracks(n):
 
 
 def _window_extremes(t_f, data, model, mode, window, dt):
-    """``c x_max(t_f)``, ``c x_min(t_f)`` of every output: (2, n, 2) [extreme, joint, sensor]."""
+    """``c x_max(t_f)``, ``c x_min(t_f)`` of every output: (2, n, 2) [extreme, joint, sensor].
+
+    Slices end step ``t_f``'s window out of the padded arrays of
+    :func:`_window_data` and runs :func:`window_extremes` on it.
+    """
+    u_win = jax.lax.dynamic_slice_in_dim(data["u"], t_f, window, 0)
+    xn_win = jax.lax.dynamic_slice_in_dim(data["x_pad"], t_f, window, 0)
+    qddn_win = jax.lax.dynamic_slice_in_dim(data["qdd_pad"], t_f, window, 0)
+    active = (t_f - window + jnp.arange(window)) >= 0
+    x0 = data["x_n"][jnp.maximum(t_f - window, 0)]  # (n, 2)
+    return window_extremes(u_win, xn_win, qddn_win, active, x0, data, model=model, mode=mode, dt=dt)
+
+
+def window_extremes(u_win, xn_win, qddn_win, active, x0, consts, *, model, mode, dt):
+    """RMI over one window whose inputs are given: (2, n, 2) [max/min, joint, sensor].
+
+    Step ``s`` of the window is time ``k = t_f - N + s``.
+
+    Args:
+        u_win: (N, n) feed-forward ``u_d(k)``.
+        xn_win, qddn_win: (N, n, 2) nominal states and (N, n) nominal
+            accelerations at ``k`` (used by ``per_joint`` mode only).
+        active: (N,) bool, False for steps before the run (``k < 0``).
+        x0: (n, 2) the window's start ``x_n(k0)``.
+        consts: mapping with ``weights`` (N, n, 2) costate velocity parts,
+            ``corners`` (K, p), ``nominal`` (p,), ``kp``, ``kd`` (n,).
+        model: the :class:`~rmijax.model.RobotModel`; mode: ``coupled`` or
+            ``per_joint``; dt: step in s.
+    """
     n = model.n_joints
     extreme, joint, sensor = _tracks(n)
-    dtype = data["u"].dtype
+    dtype = u_win.dtype
     sign = jnp.asarray(1 - 2 * extreme, dtype)  # +1 max, -1 min
     onehot = jnp.asarray(np.eye(n)[joint], dtype)  # (4n, n)
-    corners, nominal, kp, kd = data["corners"], data["nominal"], data["kp"], data["kd"]
-
-    steps = jnp.arange(window)
-    active = (t_f - window + steps) >= 0
-    u_win = jax.lax.dynamic_slice_in_dim(data["u"], t_f, window, 0)
-    sigma = sign[None, :] * data["weights"][:, joint, sensor]  # (N, 4n)
-    x0 = data["x_n"][jnp.maximum(t_f - window, 0)]  # (n, 2)
+    corners, nominal = consts["corners"], consts["nominal"]
+    kp, kd = consts["kp"], consts["kd"]
+    sigma = sign[None, :] * consts["weights"][:, joint, sensor]  # (N, 4n)
 
     if mode == "coupled":
 
@@ -270,8 +307,6 @@ def _window_extremes(t_f, data, model, mode, window, dt):
         final, _ = jax.lax.scan(step, init, (u_win, sigma, active))
         values = final[np.arange(4 * n), joint, sensor]
     else:
-        xn_win = jax.lax.dynamic_slice_in_dim(data["x_pad"], t_f, window, 0)
-        qddn_win = jax.lax.dynamic_slice_in_dim(data["qdd_pad"], t_f, window, 0)
 
         def track_step(x, sigma_t, onehot_t, u, xn, qddn):
             mine = onehot_t > 0
@@ -464,7 +499,7 @@ def rmi_step(
             raise ValueError(
                 f"t_f={int(t_f)} is outside the trajectory's end steps [0, {traj.n_steps}]"
             )
-    _batch_size(params, mode, window, dtype, DEFAULT_MEMORY_BUDGET, 1, None)
+    check_memory(params, mode=mode, window=window, dtype=dtype)
     t_f = jnp.clip(jnp.asarray(t_f, jnp.int32), 0, traj.n_steps)
     bounds = _rmi_one(traj, params, t_f, lo, hi, mode=mode, window=int(window))
     _warn_crossed(bounds)
