@@ -65,6 +65,12 @@ class PlanarArmNumpy:
         return coriolis + gravity
 
 
+def problem_args(traj, params):
+    """``(q_d, qd_d, qdd_d, kp, kd, dt, nominal)`` of rmijax objects, as NumPy arguments."""
+    arrays = (traj.q_d, traj.qd_d, traj.qdd_d, traj.kp, traj.kd)
+    return (*(np.asarray(a) for a in arrays), traj.dt, np.asarray(params.nominal))
+
+
 def pick(score, offset, largest):
     """First corner whose score is within the tie tolerance of the best one.
 
@@ -101,9 +107,27 @@ def closed_loop(q_d, qd_d, qdd_d, kp, kd, dt):
 
 
 def rmi_reference(
-    model, q_d, qd_d, qdd_d, kp, kd, dt, nominal, lo, hi, *, mode, window, v_lo=None, v_hi=None
+    model,
+    q_d,
+    qd_d,
+    qdd_d,
+    kp,
+    kd,
+    dt,
+    nominal,
+    lo,
+    hi,
+    *,
+    mode,
+    window,
+    v_lo=None,
+    v_hi=None,
+    end_steps=None,
 ):
-    """Bounds (lower, upper, nominal), each (T+1, n, 2), by SPEC sections 3-5 verbatim."""
+    """Bounds (lower, upper, nominal), each (T+1, n, 2), by SPEC sections 3-5 verbatim.
+
+    ``end_steps`` limits the work to those end steps (the others stay zero).
+    """
     n_samples, n = q_d.shape
     v_lo = np.zeros((n, 2)) if v_lo is None else np.broadcast_to(v_lo, (n, 2))
     v_hi = np.zeros((n, 2)) if v_hi is None else np.broadcast_to(v_hi, (n, 2))
@@ -140,7 +164,7 @@ def rmi_reference(
 
     lower = np.zeros((n_samples, n, 2))
     upper = np.zeros((n_samples, n, 2))
-    for t_f in range(n_samples):
+    for t_f in range(n_samples) if end_steps is None else end_steps:
         k0 = max(0, t_f - window)
         for i in range(n):
             for s in range(2):
@@ -185,27 +209,6 @@ def rmi_reference(
                 upper[t_f, i, s] = result[0] + v_hi[i, s]
                 lower[t_f, i, s] = result[1] + v_lo[i, s]
     return lower, upper, x_n
-
-
-def simulate_plant(model, q_d, qd_d, qdd_d, kp, kd, dt, nominal, th_true):
-    """True closed loop for a stack of constant true parameters: (R, T+1, n, 2)."""
-    th_true = np.atleast_2d(th_true)
-    n_samples, n = q_d.shape
-    u_d = qdd_d + kd * qd_d + kp * q_d
-    runs = th_true.shape[0]
-    x = np.zeros((runs, n_samples, n, 2))
-    x[:, 0, :, 0], x[:, 0, :, 1] = q_d[0], qd_d[0]
-    for k in range(n_samples - 1):
-        for r in range(runs):
-            q, qd = x[r, k, :, 0], x[r, k, :, 1]
-            v = u_d[k] - kd * qd - kp * q
-            tau = model.mass_matrix(q, nominal)[0] @ v + model.bias(q, qd, nominal)[0]
-            qdd = np.linalg.solve(
-                model.mass_matrix(q, th_true[r])[0], tau - model.bias(q, qd, th_true[r])[0]
-            )
-            x[r, k + 1, :, 0] = q + dt * qd
-            x[r, k + 1, :, 1] = qd + dt * qdd
-    return x
 
 
 def simulate_faults(model, q_d, qd_d, qdd_d, kp, kd, dt, nominal, th_true, faults, noise):

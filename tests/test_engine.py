@@ -12,7 +12,7 @@ import rmijax
 
 from conftest import load_case
 from helpers import random_arm, random_gains
-from reference_numpy import PlanarArmNumpy, rmi_reference
+from reference_numpy import PlanarArmNumpy, problem_args, rmi_reference
 
 CASES = [
     "pendulum_sine_per_joint",
@@ -78,13 +78,7 @@ def test_equals_numpy_reference(rng, n, mode):
     )
     lower, upper, nominal = rmi_reference(
         PlanarArmNumpy(n),
-        np.asarray(traj.q_d),
-        np.asarray(traj.qd_d),
-        np.asarray(traj.qdd_d),
-        np.asarray(traj.kp),
-        np.asarray(traj.kd),
-        traj.dt,
-        np.asarray(params.nominal),
+        *problem_args(traj, params),
         np.asarray(params.lo),
         np.asarray(params.hi),
         mode=mode,
@@ -149,13 +143,7 @@ def test_user_robot_model(mode):
     bounds = rmijax.rmi(traj, params, mode=mode, window=12)
     lower, upper, _ = rmi_reference(
         ToyNumpy(),
-        np.asarray(traj.q_d),
-        np.asarray(traj.qd_d),
-        np.asarray(traj.qdd_d),
-        np.asarray(traj.kp),
-        np.asarray(traj.kd),
-        traj.dt,
-        np.asarray(params.nominal),
+        *problem_args(traj, params),
         np.asarray(params.lo),
         np.asarray(params.hi),
         mode=mode,

@@ -8,7 +8,7 @@ import pytest
 
 import rmijax
 
-from reference_numpy import PlanarArmNumpy, simulate_faults
+from reference_numpy import PlanarArmNumpy, problem_args, simulate_faults
 
 
 @pytest.fixture(scope="module")
@@ -61,13 +61,7 @@ def test_faults_equal_numpy_simulation(arm, faults):
     assert np.all(noise[..., 0] >= -1e-3) and np.all(noise[..., 1] <= 1e-3)
     x_ref, y_ref = simulate_faults(
         PlanarArmNumpy(2),
-        np.asarray(traj.q_d),
-        np.asarray(traj.qd_d),
-        np.asarray(traj.qdd_d),
-        np.asarray(traj.kp),
-        np.asarray(traj.kd),
-        traj.dt,
-        np.asarray(params.nominal),
+        *problem_args(traj, params),
         th,
         steps,
         noise,
@@ -88,6 +82,18 @@ def test_fault_semantics(arm):
     assert np.all(np.asarray(x[k:, 1, 0]) == float(x[k, 1, 0]))
     x, y = rmijax.simulate(traj, params, th, faults=[rmijax.Fault("drift", 1, 1.0, 0.5, 0)])
     np.testing.assert_allclose(y[k:, 1, 0] - x[k:, 1, 0], 0.5 * (traj.t[k:] - 1.0), atol=1e-12)
+
+
+def test_fault_free_batch_equals_numpy(arm):
+    params, traj = arm
+    th = rmijax.monte_carlo_parameters(params, 2, seed=1)[[0, 7, 16, 17]]
+    states, readings = rmijax.simulate(traj, params, th)
+    for r in range(th.shape[0]):
+        x_ref, _ = simulate_faults(
+            PlanarArmNumpy(2), *problem_args(traj, params), th[r], [], np.zeros(states.shape[1:])
+        )
+        np.testing.assert_allclose(states[r], x_ref, rtol=0, atol=1e-11)
+    np.testing.assert_array_equal(readings, states)
 
 
 def test_batch_equals_single_runs(arm):

@@ -1,0 +1,72 @@
+"""Shared helpers of the benchmark scripts: timing, machine description, JSON and tables."""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import resource
+import time
+
+import numpy as np
+
+REAL_TIME_BUDGET_S = 1e-3
+"""The real-time reference: one tick of a 1 kHz torque loop (SPEC section 8)."""
+
+
+def time_calls(fn, args_for_call, *, calls, max_seconds=None):
+    """Median and p99 seconds of ``fn(*args_for_call(i))`` (blocked until ready).
+
+    Stops early after ``max_seconds`` (at least 2 calls), and says how many ran.
+    """
+    times = []
+    started = time.perf_counter()
+    for i in range(calls):
+        t0 = time.perf_counter()
+        out = fn(*args_for_call(i))
+        _block(out)
+        times.append(time.perf_counter() - t0)
+        elapsed = time.perf_counter() - started
+        if max_seconds is not None and len(times) >= 2 and elapsed > max_seconds:
+            break
+    times = np.asarray(times)
+    return {
+        "p50_s": float(np.median(times)),
+        "p99_s": float(np.percentile(times, 99)),
+        "calls": int(times.size),
+    }
+
+
+def _block(out):
+    import jax
+
+    jax.block_until_ready(out)
+
+
+def peak_rss_mb():
+    """Peak resident memory of this process so far, in MiB."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def device():
+    """A short description of the machine the numbers come from."""
+    import jax
+
+    dev = jax.devices()[0]
+    cpu = platform.processor() or platform.machine()
+    return f"{dev.platform}:{dev.device_kind} ({os.cpu_count()} cores, {cpu})"
+
+
+def write_json(path, records, meta):
+    if path:
+        with open(path, "w") as handle:
+            json.dump({"meta": meta, "results": records}, handle, indent=2)
+
+
+def table(records, columns):
+    """A plain-text table of ``records`` with ``columns = [(key, header, fmt)]``."""
+    head = " | ".join(h for _, h, _ in columns)
+    lines = [head, "-" * len(head)]
+    for rec in records:
+        lines.append(" | ".join(fmt.format(rec[key]) for key, _, fmt in columns))
+    return "\n".join(lines)

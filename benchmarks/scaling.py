@@ -1,0 +1,265 @@
+"""How exact RMI scales with the number of links: online latency, offline throughput, memory.
+
+For each arm size n (``preset_arm(n)``, K = 4^n corners), mode and dtype:
+- compile time of the online step (first call minus a timed call);
+- online per-step latency p50/p99: one jitted call returning all bounds of one end
+  step (all 4n tracks, max and min, full window), after warm-up, block_until_ready
+  (SPEC section 8); at most ``--calls`` calls or ``--max-seconds`` per size;
+- offline throughput: end steps per second of ``rmi`` over a run, compile apart; a
+  whole 15 s run (1501 end steps) where that takes under ``--offline-seconds``, else as
+  many end steps as fit in it (at least 2; stated in the table);
+- peak RSS of the process and the ratio of the p50 latency to the 1 ms budget;
+- the speed-up over the plain NumPy reference (tests/reference_numpy.py) on the same
+  end steps, for ``--numpy-links``.
+
+Run: python benchmarks/scaling.py --links 6     (see --help)
+"""
+
+from __future__ import annotations
+
+import argparse
+import pathlib
+import sys
+import time
+
+HERE = pathlib.Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+from _common import (  # noqa: E402
+    REAL_TIME_BUDGET_S,
+    device,
+    peak_rss_mb,
+    table,
+    time_calls,
+    write_json,
+)
+
+COLUMNS = [
+    ("n", "n", "{:>2d}"),
+    ("K", "K", "{:>6d}"),
+    ("mode", "mode", "{:>9s}"),
+    ("dtype", "dtype", "{:>7s}"),
+    ("compile_s", "compile s", "{:>9.2f}"),
+    ("p50_ms", "p50 ms", "{:>10.3f}"),
+    ("p99_ms", "p99 ms", "{:>10.3f}"),
+    ("calls", "calls", "{:>5d}"),
+    ("offline_steps", "offl. steps", "{:>11d}"),
+    ("offline_steps_per_s", "steps/s", "{:>9.1f}"),
+    ("budget_ratio", "x 1 ms", "{:>9.2f}"),
+    ("peak_rss_mb", "RSS MB", "{:>7.0f}"),
+    ("numpy_speedup", "vs NumPy", "{:>8s}"),
+]
+
+
+def _paths(n):
+    return ["slow_sine"] + ["sine"] * (n - 1)
+
+
+def step_flops(params, traj, mode, window):
+    """XLA's flop count of one end step: one window step (all tracks, all corners) x N.
+
+    XLA's cost analysis counts a loop body once, so a one-step window is analysed
+    and scaled by the window length.
+    """
+    import jax
+
+    import rmijax
+
+    one = jax.jit(lambda t: rmijax.rmi_step(traj, params, t, mode=mode, window=1))
+    analysis = one.lower(5).compile().cost_analysis()
+    if isinstance(analysis, list):
+        analysis = analysis[0]
+    return float(analysis.get("flops", float("nan"))) * window
+
+
+def measure(n, mode, dtype_name, args):
+    import jax
+    import jax.numpy as jnp
+
+    import rmijax
+
+    dtype = jnp.float64 if dtype_name == "float64" else jnp.float32
+    params = rmijax.preset_arm(n, dtype=dtype)
+    traj = rmijax.trajectory(_paths(n), duration=4.0, dtype=dtype)
+    step = jax.jit(lambda t: rmijax.rmi_step(traj, params, t, mode=mode, window=args.window))
+    end_steps = [jnp.asarray(args.window + 1 + i % 200) for i in range(args.calls)]
+    t0 = time.perf_counter()
+    jax.block_until_ready(step(end_steps[0]))
+    first = time.perf_counter() - t0
+    timing = time_calls(
+        step, lambda i: (end_steps[i],), calls=args.calls, max_seconds=args.max_seconds
+    )
+    compile_s = max(first - timing["p50_s"], 0.0)
+
+    # Offline: a whole 15 s run if it fits the time allowance, else a stated subset.
+    # Every end step runs a full-length (masked) window, so any subset is representative.
+    count = int(min(1501, max(2, args.offline_seconds / max(timing["p50_s"], 1e-9))))
+    offline_traj = rmijax.trajectory(_paths(n), duration=(count - 1) * 0.01, dtype=dtype)
+    bounds = rmijax.rmi(offline_traj, params, mode=mode, window=args.window)
+    jax.block_until_ready(bounds.upper)  # compile and a first run
+    t0 = time.perf_counter()
+    jax.block_until_ready(rmijax.rmi(offline_traj, params, mode=mode, window=args.window).upper)
+    offline_rate = count / (time.perf_counter() - t0)
+    record = {
+        "n": n,
+        "K": 4**n,
+        "mode": mode,
+        "dtype": dtype_name,
+        "window": args.window,
+        "compile_s": compile_s,
+        "p50_ms": timing["p50_s"] * 1e3,
+        "p99_ms": timing["p99_s"] * 1e3,
+        "calls": timing["calls"],
+        "offline_steps": count,
+        "offline_steps_per_s": offline_rate,
+        "budget_ratio": timing["p50_s"] / REAL_TIME_BUDGET_S,
+        "peak_rss_mb": peak_rss_mb(),
+        "numpy_speedup": "-",
+    }
+    if n in args.numpy_links and dtype_name == "float64":
+        record.update(numpy_comparison(n, mode, args))
+    return record
+
+
+def numpy_comparison(n, mode, args):
+    """Seconds per end step of the NumPy reference and of the JAX step, same end steps."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    import rmijax
+
+    sys.path.insert(0, str(HERE.parent / "tests"))
+    from reference_numpy import PlanarArmNumpy, problem_args, rmi_reference
+
+    params = rmijax.preset_arm(n, dtype=jnp.float64)
+    traj = rmijax.trajectory(_paths(n), duration=4.0, dtype=jnp.float64)
+    ends = list(range(args.window + 1, args.window + 1 + args.numpy_steps))
+    t0 = time.perf_counter()
+    rmi_reference(
+        PlanarArmNumpy(n),
+        *problem_args(traj, params),
+        np.asarray(params.lo),
+        np.asarray(params.hi),
+        mode=mode,
+        window=args.window,
+        end_steps=ends,
+    )
+    numpy_per_step = (time.perf_counter() - t0) / len(ends)
+    step = jax.jit(lambda t: rmijax.rmi_step(traj, params, t, mode=mode, window=args.window))
+    jax.block_until_ready(step(ends[0]))
+    t0 = time.perf_counter()
+    for t in ends:
+        jax.block_until_ready(step(t))
+    jax_per_step = (time.perf_counter() - t0) / len(ends)
+    return {
+        "numpy_s_per_step": numpy_per_step,
+        "jax_s_per_step": jax_per_step,
+        "numpy_speedup": f"{numpy_per_step / jax_per_step:.0f}x",
+    }
+
+
+def plot(records, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    groups = sorted({(r["mode"], r["dtype"]) for r in records})
+    for mode, dtype in groups:
+        rows = sorted(
+            (r for r in records if (r["mode"], r["dtype"]) == (mode, dtype)), key=lambda r: r["n"]
+        )
+        ax.plot(
+            [r["n"] for r in rows],
+            [r["p50_ms"] for r in rows],
+            marker="o",
+            ls="-" if mode == "coupled" else "--",
+            label=f"{mode}, {dtype}",
+        )
+    ax.axhline(1.0, color="k", lw=0.8, ls=":", label="1 ms (1 kHz loop)")
+    ax.set_yscale("log")
+    ax.set_xlabel("links n (K = 4^n corners)")
+    ax.set_ylabel("online latency per end step, p50 [ms]")
+    ax.set_title(f"exact RMI, window {records[0]['window']}, {device()}", fontsize=9)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument(
+        "--links",
+        type=int,
+        nargs="+",
+        default=[1, 2, 3, 4, 5, 6],
+        help="arm sizes, e.g. --links 6 or --links 1 2 3 8",
+    )
+    parser.add_argument("--mode", choices=["coupled", "per_joint", "both"], default="both")
+    parser.add_argument("--dtype", choices=["float32", "float64", "both"], default="float64")
+    parser.add_argument("--window", type=int, default=100)
+    parser.add_argument(
+        "--calls",
+        type=int,
+        default=200,
+        help="online calls per size (at least 100 where a call is < 1 s)",
+    )
+    parser.add_argument(
+        "--max-seconds",
+        type=float,
+        default=30.0,
+        help="stop timing one size after this long (at least 2 calls)",
+    )
+    parser.add_argument(
+        "--offline-seconds",
+        type=float,
+        default=20.0,
+        help="time allowance for the offline run of one size",
+    )
+    parser.add_argument(
+        "--numpy-links",
+        type=int,
+        nargs="*",
+        default=[1, 2, 3],
+        help="sizes compared with the NumPy reference (float64)",
+    )
+    parser.add_argument(
+        "--numpy-steps",
+        type=int,
+        default=3,
+        help="end steps (full windows) timed for the NumPy comparison",
+    )
+    parser.add_argument("--json", default=None, help="write results here")
+    parser.add_argument("--plot", default=None, help="save the latency plot here (PNG)")
+    args = parser.parse_args(argv)
+    if any(n < 1 for n in args.links):
+        parser.error("--links must be >= 1")
+
+    import jax
+
+    modes = ["coupled", "per_joint"] if args.mode == "both" else [args.mode]
+    dtypes = ["float64", "float32"] if args.dtype == "both" else [args.dtype]
+    if "float64" in dtypes:
+        jax.config.update("jax_enable_x64", True)
+    records = []
+    for n in args.links:
+        for mode in modes:
+            for dtype in dtypes:
+                records.append(measure(n, mode, dtype, args))
+                lines = table(records, COLUMNS).splitlines()
+                print("\n".join(lines if len(records) == 1 else lines[-1:]), flush=True)
+    meta = {"device": device(), "script": "benchmarks/scaling.py", "args": vars(args)}
+    write_json(args.json, records, meta)
+    if args.plot:
+        plot(records, args.plot)
+    print(
+        f"device: {meta['device']}; x 1 ms = p50 / 1 ms; steps/s over 'offl. steps' end "
+        "steps (1501 = a whole 15 s run)"
+    )
+
+
+if __name__ == "__main__":
+    main()
