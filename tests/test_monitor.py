@@ -126,6 +126,7 @@ def test_nan_reading_alarms_inside_jit_and_is_refused_outside(arm):
         (dict(window=0), "window must be"),
         (dict(persistence=0), "persistence must be"),
         (dict(noise_lo=np.zeros(3)), "noise_lo must be a scalar"),
+        (dict(noise_lo=[0.0, 0.2], noise_hi=0.1), "noise_lo > noise_hi for joint 0 tachometer"),
     ],
 )
 def test_bad_monitor_arguments(kwargs, match):

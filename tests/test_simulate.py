@@ -130,6 +130,7 @@ def test_divergence_is_reported_not_poisoning(arm):
         (dict(th_true=np.ones(3)), ValueError, r"th_true must have shape \(4,\) or \(R, 4\)"),
         (dict(th_true=np.full(4, np.nan)), ValueError, "th_true contains a non-finite"),
         (dict(noise_lo=np.zeros(5)), ValueError, "noise_lo must be a scalar"),
+        (dict(noise_lo=0.1, noise_hi=0.0), ValueError, "noise_lo > noise_hi for joint 0"),
     ],
 )
 def test_bad_simulation_inputs(arm, kwargs, error, match):

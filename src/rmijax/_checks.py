@@ -110,3 +110,19 @@ def noise_bounds(name, value, n, dtype):
         )
     check_finite(name, array)
     return array
+
+
+def noise_interval(noise_lo, noise_hi, n, dtype):
+    """Both sensor-noise bounds as ``(n, 2)`` arrays, checked for ``noise_lo <= noise_hi``."""
+    lo = noise_bounds("noise_lo", noise_lo, n, dtype)
+    hi = noise_bounds("noise_hi", noise_hi, n, dtype)
+    if is_concrete(lo) and is_concrete(hi):
+        bad = np.argwhere(np.asarray(lo) > np.asarray(hi))
+        if bad.size:
+            i, s = (int(v) for v in bad[0])
+            raise ValueError(
+                f"noise_lo > noise_hi for joint {i} {'encoder' if s == 0 else 'tachometer'}"
+                f" ({float(lo[i, s])!r} > {float(hi[i, s])!r}); the noise interval "
+                "must satisfy noise_lo <= noise_hi (noise_lo is usually <= 0)"
+            )
+    return lo, hi

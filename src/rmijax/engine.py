@@ -111,17 +111,7 @@ def _validate(traj, params, mode, window, noise_lo, noise_hi):
     for name in ("u_d", "x_n", "qdd_n", "kp", "kd"):
         _checks.check_finite(f"traj.{name}", getattr(traj, name))
     _checks.check_stable(traj.kp, traj.kd, traj.dt)
-    lo = _checks.noise_bounds("noise_lo", noise_lo, n, dtype)
-    hi = _checks.noise_bounds("noise_hi", noise_hi, n, dtype)
-    if _checks.is_concrete(lo) and _checks.is_concrete(hi):
-        bad = np.argwhere(np.asarray(lo) > np.asarray(hi))
-        if bad.size:
-            i, s = (int(v) for v in bad[0])
-            raise ValueError(
-                f"noise_lo > noise_hi for joint {i} {'encoder' if s == 0 else 'tachometer'}"
-                f" ({float(lo[i, s])!r} > {float(hi[i, s])!r}); the noise interval "
-                "must satisfy noise_lo <= noise_hi (noise_lo is usually <= 0)"
-            )
+    lo, hi = _checks.noise_interval(noise_lo, noise_hi, n, dtype)
     return dtype, lo, hi
 
 

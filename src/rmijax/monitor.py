@@ -142,10 +142,7 @@ def monitor(
     kp = _checks.per_joint("kp", kp, n, dtype)
     kd = _checks.per_joint("kd", kd, n, dtype)
     _checks.check_stable(kp, kd, dt)
-    lo = _checks.noise_bounds("noise_lo", noise_lo, n, dtype)
-    hi = _checks.noise_bounds("noise_hi", noise_hi, n, dtype)
-    if bool(jnp.any(lo > hi)):
-        raise ValueError("noise_lo must be <= noise_hi for every joint and sensor")
+    lo, hi = _checks.noise_interval(noise_lo, noise_hi, n, dtype)
     check_memory(params, mode=mode, window=window)  # one tick holds one end step's window
     consts = dict(
         weights=costate_weights(kp, kd, dt, window),

@@ -272,10 +272,7 @@ def simulate(
     if isinstance(faults, Fault):
         faults = (faults,)
     tables = _fault_tables(tuple(faults), n, traj.n_steps, traj.dt, dtype)
-    lo = _checks.noise_bounds("noise_lo", noise_lo, n, dtype)
-    hi = _checks.noise_bounds("noise_hi", noise_hi, n, dtype)
-    if bool(jnp.any(lo > hi)):
-        raise ValueError("noise_lo must be <= noise_hi for every joint and sensor")
+    lo, hi = _checks.noise_interval(noise_lo, noise_hi, n, dtype)
     if _checks.is_concrete(th):
         outside = np.asarray((th < params.lo[None]) | (th > params.hi[None]))
         if outside.any():
