@@ -126,3 +126,23 @@ def noise_interval(noise_lo, noise_hi, n, dtype):
                 "must satisfy noise_lo <= noise_hi (noise_lo is usually <= 0)"
             )
     return lo, hi
+
+
+def positive_int(name, value, unit="") -> int:
+    """``value`` as an int >= 1 (bools refused), or an error naming ``name``."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+        what = f"an integer number of {unit} >= 1" if unit else "an integer >= 1"
+        raise ValueError(f"{name} must be {what}, got {value!r}")
+    return int(value)
+
+
+def tolerance(tol) -> float:
+    """A detection tolerance: finite and >= 0."""
+    if not (np.isfinite(tol) and tol >= 0):
+        raise ValueError(f"tol must be a finite number >= 0, got {tol!r}")
+    return float(tol)
+
+
+def cast_tree(tree, dtype):
+    """Every array leaf of a pytree as ``dtype``."""
+    return jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), tree)

@@ -11,6 +11,7 @@ import dataclasses
 import jax.numpy as jnp
 import numpy as np
 
+from rmijax import _checks
 from rmijax.engine import Bounds
 from rmijax.params import UncertainRobot
 from rmijax.simulate import simulate
@@ -143,10 +144,8 @@ def detect(
     dt = bounds.dt if dt is None else float(dt)
     if dt is None:
         raise ValueError("these bounds carry no step: pass dt= (s)")
-    if isinstance(persistence, bool) or int(persistence) != persistence or persistence < 1:
-        raise ValueError(f"persistence must be an integer >= 1, got {persistence!r}")
-    if not (np.isfinite(tol) and tol >= 0):
-        raise ValueError(f"tol must be a finite number >= 0, got {tol!r}")
+    persistence = _checks.positive_int("persistence", persistence)
+    tol = _checks.tolerance(tol)
     n_samples = y.shape[0]
     start = 0
     if onset is not None:
@@ -155,7 +154,7 @@ def detect(
             raise ValueError(
                 f"onset {onset!r} s is outside the run [0, {(n_samples - 1) * dt:g}] s"
             )
-    alarms = _persist(_outside(y, bounds, tol), int(persistence))
+    alarms = _persist(_outside(y, bounds, tol), persistence)
     any_alarm = alarms.reshape(n_samples, -1).any(axis=1)
     first_step, first_output = _first(alarms, 0)
     if onset is None:

@@ -99,8 +99,7 @@ def _validate(traj, params, mode, window, noise_lo, noise_hi):
         )
     if mode not in MODES:
         raise ValueError(f"unknown mode {mode!r}; choose one of {MODES}")
-    if isinstance(window, bool) or not isinstance(window, (int, np.integer)) or window < 1:
-        raise ValueError(f"window must be an integer number of steps >= 1, got {window!r}")
+    _checks.positive_int("window", window, "steps")
     n = traj.n_joints
     if params.n_joints != n:
         raise ValueError(
@@ -188,26 +187,35 @@ def costate_weights(kp, kd, dt, window):
     return jnp.flip(vel_weights, 0)  # step s weighs with (A')^(N-1-s) c
 
 
-def _window_data(traj, params, window, dtype):
-    """Arrays one window needs, padded so that any end step slices a fixed length."""
-    cast = functools.partial(jnp.asarray, dtype=dtype)
-    kp, kd = cast(traj.kp), cast(traj.kd)
+def _window_data(traj, params, window):
+    """Arrays one window needs, padded so that any end step slices a fixed length.
+
+    ``traj`` and ``params`` arrive cast to one dtype (:func:`_cast`).
+    """
 
     def pad(x):
-        x = cast(x)
-        return jnp.concatenate([jnp.zeros((window,) + x.shape[1:], dtype), x], axis=0)
+        return jnp.concatenate([jnp.zeros((window,) + x.shape[1:], x.dtype), x], axis=0)
 
     return dict(
         u=pad(traj.u_d),
-        x_n=cast(traj.x_n),
+        x_n=traj.x_n,
         x_pad=pad(traj.x_n),
         qdd_pad=pad(traj.qdd_n),
-        weights=costate_weights(kp, kd, traj.dt, window),
-        corners=cast(params.corners),
-        nominal=cast(params.nominal),
-        kp=kp,
-        kd=kd,
+        weights=costate_weights(traj.kp, traj.kd, traj.dt, window),
+        corners=params.corners,
+        nominal=params.nominal,
+        kp=traj.kp,
+        kd=traj.kd,
     )
+
+
+def _end_step_fn(traj, params, mode, window):
+    """The window data and ``t_f -> extremes (2, n, 2)`` of one end step."""
+    data = _window_data(traj, params, window)
+    fn = functools.partial(
+        _window_extremes, data=data, model=params.model, mode=mode, window=window, dt=traj.dt
+    )
+    return data, fn
 
 
 def _pick_corner(scores, offset):
@@ -347,11 +355,7 @@ def _assemble(extremes, nominal, noise_lo, noise_hi, dt):
 
 @functools.partial(jax.jit, static_argnames=("mode", "window", "batch"))
 def _rmi_all(traj, params, noise_lo, noise_hi, *, mode, window, batch):
-    dtype = noise_lo.dtype
-    data = _window_data(traj, params, window, dtype)
-    fn = functools.partial(
-        _window_extremes, data=data, model=params.model, mode=mode, window=window, dt=traj.dt
-    )
+    data, fn = _end_step_fn(traj, params, mode, window)
     end_steps = jnp.arange(traj.n_steps + 1)
     extremes = jax.lax.map(fn, end_steps, batch_size=batch)  # (T+1, 2, n, 2)
     return _assemble(extremes, data["x_n"], noise_lo, noise_hi, traj.dt)
@@ -359,25 +363,19 @@ def _rmi_all(traj, params, noise_lo, noise_hi, *, mode, window, batch):
 
 @functools.partial(jax.jit, static_argnames=("mode", "window"))
 def _rmi_chunk(traj, params, end_steps, *, mode, window):
-    data = _window_data(traj, params, window, traj.u_d.dtype)
-    fn = functools.partial(
-        _window_extremes, data=data, model=params.model, mode=mode, window=window, dt=traj.dt
-    )
+    _, fn = _end_step_fn(traj, params, mode, window)
     return jax.vmap(fn)(end_steps)
 
 
 @functools.partial(jax.jit, static_argnames=("mode", "window"))
 def _rmi_one(traj, params, t_f, noise_lo, noise_hi, *, mode, window):
-    dtype = noise_lo.dtype
-    data = _window_data(traj, params, window, dtype)
-    extremes = _window_extremes(t_f, data, params.model, mode, window, traj.dt)
+    data, fn = _end_step_fn(traj, params, mode, window)
+    extremes = fn(t_f)
     return _assemble(extremes, data["x_n"][t_f], noise_lo, noise_hi, traj.dt)
 
 
 def _cast(traj, params, dtype):
-    traj = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), traj)
-    params = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), params)
-    return traj, params
+    return _checks.cast_tree(traj, dtype), _checks.cast_tree(params, dtype)
 
 
 def _warn_crossed(bounds):

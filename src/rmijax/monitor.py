@@ -16,7 +16,6 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from rmijax import _checks
 from rmijax.control import closed_loop_step, feedforward, servo_command
@@ -132,13 +131,10 @@ def monitor(
         raise ValueError(f"unknown method {method!r}; the monitor runs {METHODS}")
     if mode not in MODES:
         raise ValueError(f"unknown mode {mode!r}; choose one of {MODES}")
-    if isinstance(window, bool) or not isinstance(window, (int, np.integer)) or window < 1:
-        raise ValueError(f"window must be an integer number of ticks >= 1, got {window!r}")
-    if isinstance(persistence, bool) or int(persistence) != persistence or persistence < 1:
-        raise ValueError(f"persistence must be an integer >= 1, got {persistence!r}")
-    if not (np.isfinite(tol) and tol >= 0):
-        raise ValueError(f"tol must be a finite number >= 0, got {tol!r}")
-    n, dtype, dt, window = params.n_joints, params.dtype, float(dt), int(window)
+    window = _checks.positive_int("window", window, "ticks")
+    persistence = _checks.positive_int("persistence", persistence)
+    tol = _checks.tolerance(tol)
+    n, dtype, dt = params.n_joints, params.dtype, float(dt)
     kp = _checks.per_joint("kp", kp, n, dtype)
     kd = _checks.per_joint("kd", kd, n, dtype)
     _checks.check_stable(kp, kd, dt)
@@ -152,7 +148,6 @@ def monitor(
         kd=kd,
     )
     model = params.model
-    persistence = int(persistence)
 
     def init(q_d0, qd_d0) -> MonitorState:
         q0 = _checks.float_array("q_d0", q_d0, (n,), dtype=dtype)

@@ -289,8 +289,7 @@ def simulate(
     shape = (runs, traj.n_steps + 1, n, 2)
     uniform = jax.random.uniform(jax.random.PRNGKey(seed), shape, dtype)
     noise = jnp.broadcast_to(lo, shape) + jnp.broadcast_to(hi - lo, shape) * uniform
-    traj = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), traj)
-    params = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), params)
+    traj, params = _checks.cast_tree(traj, dtype), _checks.cast_tree(params, dtype)
     states, readings, diverged = _simulate(
         traj, params, th, noise, tables, limit=float(divergence_limit)
     )
