@@ -25,15 +25,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from rmijax import _checks
+from rmijax import _checks, planar_search
 from rmijax.control import closed_loop_step, computed_torque, servo_command
+from rmijax.model import is_planar_arm
 from rmijax.params import UncertainRobot
 from rmijax.trajectory import Trajectory
 
 __all__ = [
     "DEFAULT_MEMORY_BUDGET",
     "MODES",
+    "SEARCHES",
     "Bounds",
+    "DivergedError",
     "ProblemTooLargeError",
     "check_memory",
     "costate_weights",
@@ -45,6 +48,12 @@ __all__ = [
 
 MODES = ("coupled", "per_joint")
 """RMI modes: ``coupled`` (exact, the default) and ``per_joint`` (the paper's)."""
+
+SEARCHES = ("auto", "enumerate")
+"""How the extreme corner is found: ``auto`` uses the planar arm's exact factored
+search (:mod:`rmijax.planar_search`) when the model is that arm and enumerates
+otherwise; ``enumerate`` always evaluates all ``2^p`` corners (the definition).
+Both return the same corner."""
 
 DEFAULT_MEMORY_BUDGET = 4 * 2**30
 """Default bytes allowed for the working set of one batch of end steps (4 GiB)."""
@@ -86,7 +95,7 @@ class Bounds:
 # --------------------------------------------------------------------------
 
 
-def _validate(traj, params, mode, window, noise_lo, noise_hi):
+def _validate(traj, params, mode, window, noise_lo, noise_hi, search="auto"):
     if not isinstance(traj, Trajectory):
         raise TypeError(
             f"traj must be a rmijax.Trajectory (from rmijax.trajectory or "
@@ -99,6 +108,7 @@ def _validate(traj, params, mode, window, noise_lo, noise_hi):
         )
     if mode not in MODES:
         raise ValueError(f"unknown mode {mode!r}; choose one of {MODES}")
+    check_search(search, params.model)
     _checks.positive_int("window", window, "steps")
     n = traj.n_joints
     if params.n_joints != n:
@@ -114,36 +124,86 @@ def _validate(traj, params, mode, window, noise_lo, noise_hi):
     return dtype, lo, hi
 
 
-def estimate_memory(params: UncertainRobot, *, mode="coupled", window=100, dtype=None) -> int:
+def check_search(search, model):
+    """Validate the ``search`` option (see :data:`SEARCHES`) for ``model``."""
+    if search not in SEARCHES:
+        raise ValueError(f"unknown search {search!r}; choose one of {SEARCHES}")
+    if _factored(model, search) and model.n_joints > planar_search.MAX_LINKS:
+        raise ValueError(
+            f"exact RMI takes at most {planar_search.MAX_LINKS} links "
+            f"(the arm has {model.n_joints}); its 2^n mass corners per track and step are "
+            "out of reach beyond that. Use a method that scales (rmijax.bounds)."
+        )
+
+
+def _factored(model, search):
+    return search == "auto" and is_planar_arm(model)
+
+
+def estimate_memory(
+    params: UncertainRobot, *, mode="coupled", window=100, dtype=None, search="auto"
+) -> int:
     """Estimated peak bytes of the working set of one end step's window.
 
-    The inner step evaluates every corner on every track: ``4n x K`` values
+    For the planar arm with ``search="auto"`` see :func:`_estimate_factored`
+    (``O(n^3 2^n)`` coupled, ``O(n 4^n)`` per_joint). When corners are
+    enumerated, the inner step evaluates every corner on every track: ``4n x K`` values
     per intermediate, and XLA keeps ``O(n^2)`` of them alive at once. Measured
     with XLA's own buffer analysis for the planar arm (``n = 5..7``, float64,
     one end step): about ``0.7 n^2`` such arrays in ``coupled`` mode (closed-form
     dynamics) and ``2.3 n^2`` in ``per_joint`` mode (full ``M`` and ``h`` per
     corner). The estimate uses ``n^2 + 2n + 8`` and ``3n^2 + 4n + 8`` (models
-    without a closed form: the latter in both modes), so it errs high by
-    about 2x; it grows linearly with the number of end steps per batch.
+    without a closed form: the latter in both modes) plus 64 KiB, so it
+    errs high by about 2x; it grows linearly with the number of end steps per batch.
     """
     del window  # the scan keeps one step's intermediates alive at a time
     n, k = params.n_joints, params.n_corners
     itemsize = jnp.dtype(dtype or params.dtype).itemsize
     tracks = 4 * n
+    if _factored(params.model, search):
+        return _estimate_factored(n, mode, itemsize)
     if mode == "coupled" and params.model.forward_dynamics is not None:
         per_value = n * n + 2 * n + 8
     else:
         per_value = 3 * n * n + 4 * n + 8
-    return tracks * k * itemsize * per_value
+    return _WINDOW_DATA_BYTES + tracks * k * itemsize * per_value
 
 
-def check_memory(params, *, mode="coupled", window=100, dtype=None, budget=DEFAULT_MEMORY_BUDGET):
+_WINDOW_DATA_BYTES = 64 * 2**10
+"""Allowance for the window's own arrays and XLA's small buffers, per end step."""
+
+
+def _estimate_factored(n, mode, itemsize):
+    """Working set of one end step of the planar arm's factored search.
+
+    ``coupled``: every track holds ``O(n^2)`` values per mass corner (the
+    factorisation) and ``O(n)`` per (mass corner, length combo); XLA's buffer
+    analysis (float64, n = 1..8, one and four end steps per batch) measured
+    28-136 x ``4n 2^n`` values, growing like ``0.75 n^2``. ``per_joint``: joint 1
+    enumerates ``4^n`` corners on its four tracks; measured 8.5-70 x ``4 4^n``.
+    The estimates below, plus 64 KiB for the window's own data, lie above every
+    measurement by 1.3-4x.
+    """
+    if mode == "coupled":
+        return _WINDOW_DATA_BYTES + 4 * n * 2**n * itemsize * (n * n + 4 * n + 16)
+    return _WINDOW_DATA_BYTES + 4 * 4**n * itemsize * (2 * n + 8)
+
+
+def check_memory(
+    params,
+    *,
+    mode="coupled",
+    window=100,
+    dtype=None,
+    budget=DEFAULT_MEMORY_BUDGET,
+    search="auto",
+):
     """Raise :class:`ProblemTooLargeError` if one end step's window does not fit ``budget``."""
-    _batch_size(params, mode, window, dtype or params.dtype, budget, 1, None)
+    _batch_size(params, mode, window, dtype or params.dtype, budget, 1, None, search=search)
 
 
-def _batch_size(params, mode, window, dtype, budget, n_end_steps, chunk_size):
-    per_end_step = estimate_memory(params, mode=mode, window=window, dtype=dtype)
+def _batch_size(params, mode, window, dtype, budget, n_end_steps, chunk_size, *, search="auto"):
+    per_end_step = estimate_memory(params, mode=mode, window=window, dtype=dtype, search=search)
     if per_end_step > budget:
         raise ProblemTooLargeError(
             f"one end step of this problem needs about {per_end_step / 2**30:.2f} GiB "
@@ -204,16 +264,24 @@ def _window_data(traj, params, window):
         weights=costate_weights(traj.kp, traj.kd, traj.dt, window),
         corners=params.corners,
         nominal=params.nominal,
+        lo=params.lo,
+        hi=params.hi,
         kp=traj.kp,
         kd=traj.kd,
     )
 
 
-def _end_step_fn(traj, params, mode, window):
+def _end_step_fn(traj, params, mode, window, search):
     """The window data and ``t_f -> extremes (2, n, 2)`` of one end step."""
     data = _window_data(traj, params, window)
     fn = functools.partial(
-        _window_extremes, data=data, model=params.model, mode=mode, window=window, dt=traj.dt
+        _window_extremes,
+        data=data,
+        model=params.model,
+        mode=mode,
+        window=window,
+        dt=traj.dt,
+        search=search,
     )
     return data, fn
 
@@ -243,7 +311,7 @@ def _tracks(n):
     return extreme.ravel(), joint.ravel(), sensor.ravel()
 
 
-def _window_extremes(t_f, data, model, mode, window, dt):
+def _window_extremes(t_f, data, model, mode, window, dt, search):
     """``c x_max(t_f)``, ``c x_min(t_f)`` of every output: (2, n, 2) [extreme, joint, sensor].
 
     Slices end step ``t_f``'s window out of the padded arrays of
@@ -254,10 +322,12 @@ def _window_extremes(t_f, data, model, mode, window, dt):
     qddn_win = jax.lax.dynamic_slice_in_dim(data["qdd_pad"], t_f, window, 0)
     active = (t_f - window + jnp.arange(window)) >= 0
     x0 = data["x_n"][jnp.maximum(t_f - window, 0)]  # (n, 2)
-    return window_extremes(u_win, xn_win, qddn_win, active, x0, data, model=model, mode=mode, dt=dt)
+    return window_extremes(
+        u_win, xn_win, qddn_win, active, x0, data, model=model, mode=mode, dt=dt, search=search
+    )
 
 
-def window_extremes(u_win, xn_win, qddn_win, active, x0, consts, *, model, mode, dt):
+def window_extremes(u_win, xn_win, qddn_win, active, x0, consts, *, model, mode, dt, search="auto"):
     """RMI over one window whose inputs are given: (2, n, 2) [max/min, joint, sensor].
 
     Step ``s`` of the window is time ``k = t_f - N + s``.
@@ -269,9 +339,9 @@ def window_extremes(u_win, xn_win, qddn_win, active, x0, consts, *, model, mode,
         active: (N,) bool, False for steps before the run (``k < 0``).
         x0: (n, 2) the window's start ``x_n(k0)``.
         consts: mapping with ``weights`` (N, n, 2) costate velocity parts,
-            ``corners`` (K, p), ``nominal`` (p,), ``kp``, ``kd`` (n,).
+            ``corners`` (K, p), ``nominal``, ``lo``, ``hi`` (p,), ``kp``, ``kd`` (n,).
         model: the :class:`~rmijax.model.RobotModel`; mode: ``coupled`` or
-            ``per_joint``; dt: step in s.
+            ``per_joint``; dt: step in s; search: see :data:`SEARCHES`.
     """
     n = model.n_joints
     extreme, joint, sensor = _tracks(n)
@@ -281,8 +351,19 @@ def window_extremes(u_win, xn_win, qddn_win, active, x0, consts, *, model, mode,
     corners, nominal = consts["corners"], consts["nominal"]
     kp, kd = consts["kp"], consts["kd"]
     sigma = sign[None, :] * consts["weights"][:, joint, sensor]  # (N, 4n)
+    box = (nominal, consts["lo"], consts["hi"], kp, kd, dt)
 
-    if mode == "coupled":
+    if mode == "coupled" and _factored(model, search):
+
+        def step(states, inputs):
+            u, sigma_s, on = inputs
+            new = planar_search.coupled_window_step(states, u, sigma_s, onehot, *box)
+            return jnp.where(on, new, states), None
+
+        init = jnp.broadcast_to(x0, (4 * n, n, 2))
+        final, _ = jax.lax.scan(step, init, (u_win, sigma, active))
+        values = final[np.arange(4 * n), joint, sensor]
+    elif mode == "coupled":
 
         def track_step(x, sigma_t, onehot_t, u):
             q, qd = x[:, 0], x[:, 1]
@@ -304,6 +385,16 @@ def window_extremes(u_win, xn_win, qddn_win, active, x0, consts, *, model, mode,
         init = jnp.broadcast_to(x0, (4 * n, n, 2))
         final, _ = jax.lax.scan(step, init, (u_win, sigma, active))
         values = final[np.arange(4 * n), joint, sensor]
+    elif _factored(model, search):
+
+        def step(states, inputs):
+            u, sigma_s, on, xn, qddn = inputs
+            new = planar_search.per_joint_window_step(states, u, sigma_s, joint, xn, qddn, *box)
+            return jnp.where(on, new, states), None
+
+        init = x0[joint]
+        final, _ = jax.lax.scan(step, init, (u_win, sigma, active, xn_win, qddn_win))
+        values = final[np.arange(4 * n), sensor]
     else:
 
         def track_step(x, sigma_t, onehot_t, u, xn, qddn):
@@ -353,29 +444,51 @@ def _assemble(extremes, nominal, noise_lo, noise_hi, dt):
     return Bounds(lower=lower, upper=upper, nominal=nominal, crossed=upper < lower, dt=dt)
 
 
-@functools.partial(jax.jit, static_argnames=("mode", "window", "batch"))
-def _rmi_all(traj, params, noise_lo, noise_hi, *, mode, window, batch):
-    data, fn = _end_step_fn(traj, params, mode, window)
+@functools.partial(jax.jit, static_argnames=("mode", "window", "batch", "search"))
+def _rmi_all(traj, params, noise_lo, noise_hi, *, mode, window, batch, search="auto"):
+    data, fn = _end_step_fn(traj, params, mode, window, search)
     end_steps = jnp.arange(traj.n_steps + 1)
     extremes = jax.lax.map(fn, end_steps, batch_size=batch)  # (T+1, 2, n, 2)
     return _assemble(extremes, data["x_n"], noise_lo, noise_hi, traj.dt)
 
 
-@functools.partial(jax.jit, static_argnames=("mode", "window"))
-def _rmi_chunk(traj, params, end_steps, *, mode, window):
-    _, fn = _end_step_fn(traj, params, mode, window)
+@functools.partial(jax.jit, static_argnames=("mode", "window", "search"))
+def _rmi_chunk(traj, params, end_steps, *, mode, window, search):
+    _, fn = _end_step_fn(traj, params, mode, window, search)
     return jax.vmap(fn)(end_steps)
 
 
-@functools.partial(jax.jit, static_argnames=("mode", "window"))
-def _rmi_one(traj, params, t_f, noise_lo, noise_hi, *, mode, window):
-    data, fn = _end_step_fn(traj, params, mode, window)
+@functools.partial(jax.jit, static_argnames=("mode", "window", "search"))
+def _rmi_one(traj, params, t_f, noise_lo, noise_hi, *, mode, window, search):
+    data, fn = _end_step_fn(traj, params, mode, window, search)
     extremes = fn(t_f)
     return _assemble(extremes, data["x_n"][t_f], noise_lo, noise_hi, traj.dt)
 
 
 def _cast(traj, params, dtype):
     return _checks.cast_tree(traj, dtype), _checks.cast_tree(params, dtype)
+
+
+class DivergedError(ArithmeticError):
+    """The worst-case tracks of RMI left the floating-point range (the bounds are not finite)."""
+
+
+def _check_result(bounds):
+    """Refuse non-finite bounds (a diverged window); warn about crossed ones."""
+    if not _checks.is_concrete(bounds.upper):
+        return
+    finite = np.isfinite(np.asarray(bounds.upper)) & np.isfinite(np.asarray(bounds.lower))
+    if not finite.all():
+        where = tuple(int(i) for i in np.argwhere(~finite)[0])
+        sensor = "encoder" if where[-1] == 0 else "tachometer"
+        at = f"end step {where[0]}, " if len(where) == 3 else ""
+        raise DivergedError(
+            f"RMI bounds are not finite ({at}joint {where[-2]} {sensor}): the worst-case "
+            "tracks diverged, because with the parameter chosen afresh at every step this "
+            "closed loop is unstable over the window. Narrow the parameter box (lo, hi), "
+            "shorten the window or use stiffer gains (kp, kd)."
+        )
+    _warn_crossed(bounds)
 
 
 def _warn_crossed(bounds):
@@ -385,7 +498,7 @@ def _warn_crossed(bounds):
             f"RMI bounds crossed (upper < lower) at {count} output sample(s); see "
             "bounds.crossed. They are returned as computed, not swapped.",
             RuntimeWarning,
-            stacklevel=3,
+            stacklevel=4,
         )
 
 
@@ -400,6 +513,7 @@ def rmi(
     memory_budget: int = DEFAULT_MEMORY_BUDGET,
     chunk_size: int | None = None,
     progress: bool = False,
+    search: str = "auto",
 ) -> Bounds:
     """RMI bounds for every end step of a trajectory (the offline form).
 
@@ -418,6 +532,9 @@ def rmi(
             size follows from it.
         chunk_size: end steps per batch; default from ``memory_budget``.
         progress: show a progress bar over batches (eager calls only).
+        search: ``"auto"`` (the planar arm's exact factored search, else
+            enumeration) or ``"enumerate"`` (all ``2^p`` corners; same result,
+            slower). See :data:`SEARCHES`.
 
     Returns:
         :class:`Bounds` with ``lower``, ``upper``, ``nominal``, ``crossed``
@@ -426,21 +543,27 @@ def rmi(
     Raises:
         TypeError, ValueError: invalid inputs (the message names the argument).
         ProblemTooLargeError: one end step cannot fit in ``memory_budget``.
+        DivergedError: the bounds are not finite (a box too wide for the loop);
+            only checked outside ``jit``.
     """
-    dtype, lo, hi = _validate(traj, params, mode, window, noise_lo, noise_hi)
+    dtype, lo, hi = _validate(traj, params, mode, window, noise_lo, noise_hi, search)
     traj, params = _cast(traj, params, dtype)
     n_end = traj.n_steps + 1
-    batch = _batch_size(params, mode, window, dtype, memory_budget, n_end, chunk_size)
+    batch = _batch_size(
+        params, mode, window, dtype, memory_budget, n_end, chunk_size, search=search
+    )
     concrete = all(_checks.is_concrete(a) for a in jax.tree_util.tree_leaves((traj, params)))
     if progress and concrete:
-        bounds = _rmi_with_progress(traj, params, lo, hi, mode, window, batch)
+        bounds = _rmi_with_progress(traj, params, lo, hi, mode, window, batch, search)
     else:
-        bounds = _rmi_all(traj, params, lo, hi, mode=mode, window=int(window), batch=batch)
-    _warn_crossed(bounds)
+        bounds = _rmi_all(
+            traj, params, lo, hi, mode=mode, window=int(window), batch=batch, search=search
+        )
+    _check_result(bounds)
     return bounds
 
 
-def _rmi_with_progress(traj, params, lo, hi, mode, window, batch):
+def _rmi_with_progress(traj, params, lo, hi, mode, window, batch, search):
     from tqdm.auto import tqdm
 
     n_end = traj.n_steps + 1
@@ -450,7 +573,9 @@ def _rmi_with_progress(traj, params, lo, hi, mode, window, batch):
         for chunk in range(n_chunks):
             ends = np.arange(chunk * batch, (chunk + 1) * batch)
             ends = np.minimum(ends, n_end - 1)  # fixed chunk shape: no retrace on the last
-            extremes = _rmi_chunk(traj, params, jnp.asarray(ends), mode=mode, window=int(window))
+            extremes = _rmi_chunk(
+                traj, params, jnp.asarray(ends), mode=mode, window=int(window), search=search
+            )
             extremes.block_until_ready()
             pieces.append(extremes)
             bar.update(min(batch, n_end - chunk * batch))
@@ -467,18 +592,20 @@ def rmi_step(
     window: int = 100,
     noise_lo=0.0,
     noise_hi=0.0,
+    search: str = "auto",
 ) -> Bounds:
     """RMI bounds of one end step ``t_f`` (the online form).
 
     ``t_f`` may be a Python int or a traced integer: under the user's
     ``jax.jit`` the same compiled step serves every ``t_f`` without retracing.
-    A traced ``t_f`` outside ``[0, T]`` is clipped into it.
+    A traced ``t_f`` outside ``[0, T]`` is clipped into it. The other
+    arguments are those of :func:`rmi`.
 
     Returns:
         :class:`Bounds` with ``lower``, ``upper``, ``nominal``, ``crossed`` of
         shape (n, 2).
     """
-    dtype, lo, hi = _validate(traj, params, mode, window, noise_lo, noise_hi)
+    dtype, lo, hi = _validate(traj, params, mode, window, noise_lo, noise_hi, search)
     traj, params = _cast(traj, params, dtype)
     if _checks.is_concrete(t_f):
         if np.ndim(t_f) != 0 or not float(t_f).is_integer():
@@ -487,8 +614,8 @@ def rmi_step(
             raise ValueError(
                 f"t_f={int(t_f)} is outside the trajectory's end steps [0, {traj.n_steps}]"
             )
-    check_memory(params, mode=mode, window=window, dtype=dtype)
+    check_memory(params, mode=mode, window=window, dtype=dtype, search=search)
     t_f = jnp.clip(jnp.asarray(t_f, jnp.int32), 0, traj.n_steps)
-    bounds = _rmi_one(traj, params, t_f, lo, hi, mode=mode, window=int(window))
-    _warn_crossed(bounds)
+    bounds = _rmi_one(traj, params, t_f, lo, hi, mode=mode, window=int(window), search=search)
+    _check_result(bounds)
     return bounds

@@ -15,7 +15,7 @@ from collections.abc import Callable
 import jax
 import jax.numpy as jnp
 
-__all__ = ["GRAVITY", "RobotModel", "planar_arm_model"]
+__all__ = ["GRAVITY", "RobotModel", "is_planar_arm", "planar_arm_model"]
 
 GRAVITY = 9.81
 """Gravitational acceleration in m/s^2, along ``-y``."""
@@ -126,82 +126,169 @@ def planar_bias(q, qd, th):
     return _tail_sum(centrifugal + gravity)
 
 
-def planar_forward_dynamics(q, qd, tau, th):
-    """Closed-form forward dynamics of the planar point-mass arm, (n,) in rad/s^2.
+def tail_sums(values):
+    """``out[a] = sum_{k >= a} values[k]`` for a Python list of arrays (``mu`` from masses)."""
+    out = list(values)
+    for k in range(len(out) - 2, -1, -1):
+        out[k] = out[k + 1] + out[k]
+    return out
 
-    Works in absolute angles ``phi = S q``: ``M_phi phidd = S'^-1 tau - c - G_phi``
-    with ``M_phi = W o cos(phi_a - phi_b)``, solved by an LDL' factorisation
-    written out element by element (``n`` is static), then ``qdd = S^-1 phidd``.
-    Written on scalars so that ``vmap`` over corners keeps every
-    state-only quantity (the trigonometry) out of the corner axis and XLA
-    fuses the rest into one loop; a batched ``jnp.linalg.solve`` over millions
-    of tiny matrices is 8-80x slower (PERF_NOTES).
+
+def running_sums(values):
+    """``out[a] = sum_{k <= a} values[k]`` for a Python list (absolute angles from joint angles)."""
+    out = list(values)
+    for k in range(1, len(out)):
+        out[k] = out[k - 1] + out[k]
+    return out
+
+
+def ldl_factor(matrix):
+    """``LDL'`` factorisation of a symmetric matrix given element by element.
+
+    Args:
+        matrix: ``matrix[a][b]`` for ``b <= a`` (the lower triangle), each an
+            array of any shape (the factorisation runs elementwise over it).
+
+    Returns:
+        ``(lower, diag, inv_diag)``: ``lower[i][j]`` for ``j < i`` of the unit
+        lower factor, the pivots and their reciprocals.
     """
-    n = q.shape[-1]
-    masses = [th[k] for k in range(n)]
-    lengths = [th[n + k] for k in range(n)]
-    mu = [None] * n
-    running = masses[n - 1]
-    mu[n - 1] = running
-    for k in range(n - 2, -1, -1):
-        running = running + masses[k]
-        mu[k] = running
-    phi = jnp.cumsum(q)
-    phid = jnp.cumsum(qd)
-    cos_phi, sin_phi = jnp.cos(phi), jnp.sin(phi)
-    cos_a = [cos_phi[a] for a in range(n)]
-    sin_a = [sin_phi[a] for a in range(n)]
-    phid_sq = [phid[a] * phid[a] for a in range(n)]
-
-    def weight(a, b):
-        return mu[max(a, b)] * lengths[a] * lengths[b]
-
-    # M_phi (lower triangle) and right-hand side S'^-1 tau - c - G_phi.
-    mass_abs = [[None] * n for _ in range(n)]
-    rhs = []
-    for a in range(n):
-        for b in range(a + 1):
-            cos_ab = cos_a[a] * cos_a[b] + sin_a[a] * sin_a[b]
-            mass_abs[a][b] = weight(a, b) * cos_ab
-        centrifugal = 0.0
-        for b in range(n):
-            if b == a:
-                continue
-            sin_ab = sin_a[a] * cos_a[b] - cos_a[a] * sin_a[b]
-            centrifugal = centrifugal + weight(a, b) * sin_ab * phid_sq[b]
-        torque_diff = tau[a] - tau[a + 1] if a + 1 < n else tau[a]
-        rhs.append(torque_diff - centrifugal - GRAVITY * mu[a] * lengths[a] * cos_a[a])
-
-    # LDL' factorisation: M_phi = L D L', unit lower L.
+    n = len(matrix)
     lower = [[None] * n for _ in range(n)]
-    inv_diag = [None] * n
-    diag = [None] * n
+    diag, inv_diag = [None] * n, [None] * n
     for j in range(n):
-        d = mass_abs[j][j]
+        d = matrix[j][j]
         for k in range(j):
             d = d - lower[j][k] * lower[j][k] * diag[k]
         diag[j] = d
         inv_diag[j] = 1.0 / d
         for i in range(j + 1, n):
-            s = mass_abs[i][j]
+            s = matrix[i][j]
             for k in range(j):
                 s = s - lower[i][k] * lower[j][k] * diag[k]
             lower[i][j] = s * inv_diag[j]
-    # Forward (L y = rhs), scale, back (L' x = D^-1 y).
-    y = [None] * n
+    return lower, diag, inv_diag
+
+
+def ldl_solve(lower, inv_diag, rhs):
+    """Solve ``L D L' x = rhs`` with the factors of :func:`ldl_factor` (lists in, list out)."""
+    n = len(rhs)
+    y = list(rhs)
     for i in range(n):
-        s = rhs[i]
         for k in range(i):
-            s = s - lower[i][k] * y[k]
-        y[i] = s
-    phidd = [None] * n
+            y[i] = y[i] - lower[i][k] * y[k]
+    x = [None] * n
     for i in range(n - 1, -1, -1):
         s = y[i] * inv_diag[i]
         for k in range(i + 1, n):
-            s = s - lower[k][i] * phidd[k]
-        phidd[i] = s
-    qdd = [phidd[0]] + [phidd[a] - phidd[a - 1] for a in range(1, n)]
-    return jnp.stack(qdd)
+            s = s - lower[k][i] * x[k]
+        x[i] = s
+    return x
+
+
+@dataclasses.dataclass(frozen=True)
+class PlanarState:
+    """State-only quantities of the planar arm in absolute angles ``phi = S q``.
+
+    Every entry is a Python list (or list of lists) of arrays of one shape.
+
+    Attributes:
+        cos, sin: ``cos(phi_a)``, ``sin(phi_a)``.
+        cos_diff, sin_diff: ``cos(phi_a - phi_b)``, ``sin(phi_a - phi_b)``.
+        rate_sq: ``phid_a^2`` (absolute angular rate squared, rad^2/s^2).
+    """
+
+    cos: list
+    sin: list
+    cos_diff: list
+    sin_diff: list
+    rate_sq: list
+
+    @classmethod
+    def of(cls, q, qd):
+        """From lists of joint angles ``q`` (rad) and rates ``qd`` (rad/s)."""
+        n = len(q)
+        phi, rate = running_sums(q), running_sums(qd)
+        cos = [jnp.cos(p) for p in phi]
+        sin = [jnp.sin(p) for p in phi]
+        cos_diff = [[cos[a] * cos[b] + sin[a] * sin[b] for b in range(n)] for a in range(n)]
+        sin_diff = [[sin[a] * cos[b] - cos[a] * sin[b] for b in range(n)] for a in range(n)]
+        return cls(cos, sin, cos_diff, sin_diff, [r * r for r in rate])
+
+
+def planar_torque_differences(state, mu, lengths, accel_abs):
+    """``S'^-1 tau = M_phi(S qdd) + c + G_phi``: joint torque differences (N m), a list.
+
+    ``tau_a - tau_{a+1}`` of the inverse dynamics for absolute accelerations
+    ``accel_abs = S qdd``, with ``mu`` the tail sums of the masses.
+    """
+    n = len(lengths)
+    out = []
+    for a in range(n):
+        total = GRAVITY * mu[a] * lengths[a] * state.cos[a]
+        for b in range(n):
+            weight = mu[max(a, b)] * lengths[a] * lengths[b]
+            total = total + weight * (
+                state.cos_diff[a][b] * accel_abs[b] + state.sin_diff[a][b] * state.rate_sq[b]
+            )
+        out.append(total)
+    return out
+
+
+def planar_scaled_accelerations(state, mu, lengths, inv_lengths, torque_diff):
+    """Scaled absolute accelerations ``psi_a = l_a phidd_a`` of the planar arm, a list.
+
+    Solves ``(Mu o C) psi = S'^-1 tau / l - (Mu o Sn)(l o phid^2) - g mu o cos``
+    with ``Mu_ab = mu_max(a,b)``; the matrix depends on the masses and the state
+    only, so RMI can factor it once per mass corner (``planar_search``).
+    """
+    n = len(lengths)
+    matrix = [[mu[a] * state.cos_diff[a][b] for b in range(a + 1)] for a in range(n)]
+    lower, _, inv_diag = ldl_factor(matrix)
+    rhs = []
+    for a in range(n):
+        total = torque_diff[a] * inv_lengths[a] - GRAVITY * mu[a] * state.cos[a]
+        for b in range(n):
+            total = total - mu[max(a, b)] * state.sin_diff[a][b] * lengths[b] * state.rate_sq[b]
+        rhs.append(total)
+    return ldl_solve(lower, inv_diag, rhs)
+
+
+def planar_forward_dynamics(q, qd, tau, th):
+    """Closed-form forward dynamics of the planar point-mass arm, (n,) in rad/s^2.
+
+    In absolute angles ``phi = S q`` and with ``psi_a = l_a phidd_a`` the
+    dynamics reads ``(Mu o C) psi = S'^-1 tau / l - (Mu o Sn)(l o phid^2) - g mu o cos phi``
+    (``Mu_ab = mu_max(a,b)``, ``C``, ``Sn`` the cosines and sines of
+    ``phi_a - phi_b``), solved by an ``LDL'`` factorisation written out element
+    by element (``n`` is static); then ``qdd = S^-1 (psi / l)``. Written on
+    scalars so that ``vmap`` keeps the trigonometry out of the parameter axis
+    and XLA fuses the rest; a batched ``jnp.linalg.solve`` over millions of
+    tiny matrices is 8-80x slower (PERF_NOTES).
+    """
+    n = q.shape[-1]
+    masses = [th[k] for k in range(n)]
+    lengths = [th[n + k] for k in range(n)]
+    state = PlanarState.of([q[a] for a in range(n)], [qd[a] for a in range(n)])
+    torque_diff = [tau[a] - tau[a + 1] if a + 1 < n else tau[a] for a in range(n)]
+    inv_lengths = [1.0 / length for length in lengths]
+    psi = planar_scaled_accelerations(state, tail_sums(masses), lengths, inv_lengths, torque_diff)
+    phidd = [psi[a] * inv_lengths[a] for a in range(n)]
+    return jnp.stack([phidd[0]] + [phidd[a] - phidd[a - 1] for a in range(1, n)])
+
+
+def is_planar_arm(model) -> bool:
+    """True when ``model`` is the planar point-mass arm of :func:`planar_arm_model`.
+
+    Decided by its functions, not its name, so that a user model is never
+    mistaken for it: RMI then uses the arm's exact factored corner search.
+    """
+    return (
+        model.mass_matrix is planar_mass_matrix
+        and model.bias is planar_bias
+        and model.forward_dynamics is planar_forward_dynamics
+        and model.n_params == 2 * model.n_joints
+    )
 
 
 def planar_arm_model(n_links: int) -> RobotModel:

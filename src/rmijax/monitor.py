@@ -144,6 +144,8 @@ def monitor(
         weights=costate_weights(kp, kd, dt, window),
         corners=params.corners,
         nominal=params.nominal,
+        lo=params.lo,
+        hi=params.hi,
         kp=kp,
         kd=kd,
     )
