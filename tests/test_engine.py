@@ -92,6 +92,34 @@ def test_equals_numpy_reference(rng, n, mode):
     assert float(jnp.max(bounds.width)) > 1e-4  # the box is not degenerate
 
 
+# The planar arm's factored search against plain enumeration, beyond the NumPy
+# reference's sizes. Early end steps start at rest on 'hold' (v = 0): exact ties.
+@pytest.mark.parametrize("mode", rmijax.MODES)
+@pytest.mark.parametrize(
+    "n, window", [(2, 30), (5, 25), pytest.param(6, 12, marks=pytest.mark.slow)]
+)
+def test_factored_search_equals_enumeration(rng, n, window, mode):
+    params = random_arm(rng, n, certain=(1, n + 1))  # a certain mass and length: ties
+    kp, kd = random_gains(rng, n)
+    paths = ["hold"] + list(rng.choice(["sine", "composite", "ramp", "slow_sine"], n - 1))
+    traj = rmijax.trajectory(paths, duration=0.6, kp=kp, kd=kd)
+    for t_f in [0, 1, 2, 5, window, traj.n_steps]:
+        fast = rmijax.rmi_step(traj, params, t_f, mode=mode, window=window)
+        plain = rmijax.rmi_step(traj, params, t_f, mode=mode, window=window, search="enumerate")
+        np.testing.assert_allclose(fast.lower, plain.lower, rtol=0, atol=1e-10)
+        np.testing.assert_allclose(fast.upper, plain.upper, rtol=0, atol=1e-10)
+    assert float(jnp.max(plain.width)) > 1e-4
+
+
+def test_search_option_and_link_limit():
+    traj = rmijax.trajectory(["sine"], duration=0.2)
+    with pytest.raises(ValueError, match="unknown search 'fast'"):
+        rmijax.rmi(traj, rmijax.paper_pendulum(), search="fast")
+    big = rmijax.preset_arm(16)
+    with pytest.raises(ValueError, match="exact RMI takes at most 15 links"):
+        rmijax.rmi(rmijax.trajectory(["hold"] * 16, duration=0.1), big)
+
+
 # A robot that is not the planar arm: revolute joint then prismatic joint.
 # th = (m1, c1, m2): link-1 point mass m1 at distance c1, slider mass m2 at radius r.
 def toy_mass_matrix(q, th):

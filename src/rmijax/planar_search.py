@@ -89,15 +89,24 @@ def _float_of_ordered(k, dtype):
     return jax.lax.bitcast_convert_type(jnp.where(k < 0, k ^ jnp.iinfo(k.dtype).max, k), dtype)
 
 
-def _max_all(x):
-    """Maximum over all entries of ``x``, as an integer reduction.
+def _max_min_all(high, low):
+    """``(max(high), min(low))`` over all entries, as one integer reduction.
 
     XLA's CPU backend hands float reductions to a library kernel that forces
     every operand to be materialised (each recomputing the whole corner
-    pipeline); an integer max of the order-preserving bit image is fused
-    with its producer instead. Exact: it returns one of the entries.
+    pipeline); a max of order-preserving integer images is fused with its
+    producer instead, and one variadic reduction computes both extremes in one
+    pass. Exact: it returns entries of ``high`` and ``low``.
     """
-    return _float_of_ordered(jnp.max(_ordered_int(x)), x.dtype)
+    a, b = _ordered_int(high), _ordered_int(-low)
+    smallest = jnp.array(jnp.iinfo(a.dtype).min, a.dtype)
+    top, bottom = jax.lax.reduce(
+        (a, b),
+        (smallest, smallest),
+        lambda x, y: (jnp.maximum(x[0], y[0]), jnp.maximum(x[1], y[1])),
+        tuple(range(a.ndim)),
+    )
+    return _float_of_ordered(top, high.dtype), -_float_of_ordered(bottom, low.dtype)
 
 
 def _threshold(top, bottom, offset):
@@ -320,12 +329,12 @@ def _coupled_corner(state, torque_diff, v, weight, onehot, lo, hi):
         one = (v[0] == v[0]).astype(dtype)
         return _keep(_chain(candidates, jnp.minimum), one)
 
-    # Stacked: mass corners along axis 0, combos along axis 1.
+    # Stacked: combos along axis 0, mass corners along axis 1.
     mass_index = jnp.arange(n_masses, dtype=jnp.int32)
-    mu = tail_sums([m[:, None] for m in _corner_values(lo, hi, mass_index, 0, n)])
+    mu = tail_sums([m[None, :] for m in _corner_values(lo, hi, mass_index, 0, n)])
     tables = _row_tables(state, torque_diff, mu, rows)
-    hi_i = jnp.asarray([[c[0] for c in combos]], dtype)  # (1, C)
-    hi_j = jnp.asarray([[c[1] for c in combos]], dtype)
+    hi_i = jnp.asarray([[c[0]] for c in combos], dtype)  # (C, 1)
+    hi_j = jnp.asarray([[c[1]] for c in combos], dtype)
     combo = (
         jnp.where(hi_i > 0, inv_li[1], inv_li[0]),
         jnp.where(hi_j > 0, inv_lj[1], inv_lj[0]),
@@ -334,10 +343,10 @@ def _coupled_corner(state, torque_diff, v, weight, onehot, lo, hi):
     )
     base, s0, s1 = _combo_scores(tables, combo, box, own, weight, v_own)
     total, bottom, best = _separable_extremes(base, s0, s1)
-    top, bottom = _max_all(total), -_max_all(-bottom)
+    top, bottom = _max_min_all(total, bottom)
     threshold = _threshold(top, bottom, weight * v_own)
     candidates = _lowest_index(
-        total, total - threshold, free_bits(s0, best, hi_i, hi_j), mass_index[:, None]
+        total, total - threshold, free_bits(s0, best, hi_i, hi_j), mass_index[None, :]
     )
     return jnp.min(candidates)
 
@@ -487,7 +496,7 @@ def _per_joint_track_step(i, x, weight, u, x_nominal, qdd_nominal, nominal, lo, 
     s0 = [-weight * lower[b] * inv_inertia * lo[n + b] for b in range(i)]
     s1 = [-weight * lower[b] * inv_inertia * hi[n + b] for b in range(i)]
     total, bottom, best = _separable_extremes(base, s0, s1)
-    top, bottom = _max_all(total), -_max_all(-bottom)
+    top, bottom = _max_min_all(total, bottom)
     threshold = _threshold(top, bottom, weight * v[i])
     base_index = (index[:, None] << i) + (index[None, :] << (n + i))
     free = [(n + b, best[b] - s0[b], None, None) for b in range(i - 1, -1, -1)]
