@@ -1,5 +1,7 @@
 """How exact RMI scales with the number of links: online latency, offline throughput, memory.
 
+The engine under test is ``rmijax.rmi`` with its default ``search="auto"`` (for the
+planar arm an exact search over the 2^n mass corners, SPEC sections 4-5 unchanged).
 For each arm size n (``preset_arm(n)``, K = 4^n corners), mode and dtype:
 - compile time of the online step (first call minus a timed call);
 - online per-step latency p50/p99: one jitted call returning all bounds of one end
@@ -10,7 +12,10 @@ For each arm size n (``preset_arm(n)``, K = 4^n corners), mode and dtype:
   many end steps as fit in it (at least 2; stated in the table);
 - peak RSS of the process and the ratio of the p50 latency to the 1 ms budget;
 - the speed-up over the plain NumPy reference (tests/reference_numpy.py) on the same
-  end steps, for ``--numpy-links``.
+  end steps, for ``--numpy-links``, and over plain enumeration of all corners
+  (``search="enumerate"``) for ``--enumerate-links``;
+- XLA's flop count of one end step, the achieved GFLOP/s and its share of the
+  machine's peak (``--peak-gflops``), and XLA's working set of one end step.
 
 Run: python benchmarks/scaling.py --links 6     (see --help)
 """
@@ -45,7 +50,12 @@ COLUMNS = [
     ("offline_steps", "offl. steps", "{:>11d}"),
     ("offline_steps_per_s", "steps/s", "{:>9.1f}"),
     ("budget_ratio", "x 1 ms", "{:>9.2f}"),
+    ("temp_mb", "XLA MB", "{:>7.1f}"),
     ("peak_rss_mb", "RSS MB", "{:>7.0f}"),
+    ("flops", "flop/step", "{:>9.2e}"),
+    ("gflops", "GFLOP/s", "{:>7.1f}"),
+    ("peak_pct", "% peak", "{:>6.1f}"),
+    ("enumerate_speedup", "vs enum.", "{:>8s}"),
     ("numpy_speedup", "vs NumPy", "{:>8s}"),
 ]
 
@@ -54,21 +64,27 @@ def _paths(n):
     return ["slow_sine"] + ["sine"] * (n - 1)
 
 
-def step_flops(params, traj, mode, window):
+def step_flops(params, traj, mode, window, search="auto"):
     """XLA's flop count of one end step: one window step (all tracks, all corners) x N.
 
     XLA's cost analysis counts a loop body once, so a one-step window is analysed
-    and scaled by the window length.
+    and scaled by the window length. It counts the HLO before fusion: work that
+    XLA's fusion recomputes in several kernels is counted once.
     """
     import jax
 
     import rmijax
 
-    one = jax.jit(lambda t: rmijax.rmi_step(traj, params, t, mode=mode, window=1))
+    one = jax.jit(lambda t: rmijax.rmi_step(traj, params, t, mode=mode, window=1, search=search))
     analysis = one.lower(5).compile().cost_analysis()
     if isinstance(analysis, list):
         analysis = analysis[0]
     return float(analysis.get("flops", float("nan"))) * window
+
+
+def working_set_mb(step, t):
+    """XLA's temporary buffers of one compiled end step, in MiB."""
+    return step.lower(t).compile().memory_analysis().temp_size_in_bytes / 2**20
 
 
 def measure(n, mode, dtype_name, args):
@@ -82,6 +98,7 @@ def measure(n, mode, dtype_name, args):
     traj = rmijax.trajectory(_paths(n), duration=4.0, dtype=dtype)
     step = jax.jit(lambda t: rmijax.rmi_step(traj, params, t, mode=mode, window=args.window))
     end_steps = [jnp.asarray(args.window + 1 + i % 200) for i in range(args.calls)]
+    print(f"n={n} {mode} {dtype_name}: timing the online step ...", file=sys.stderr, flush=True)
     t0 = time.perf_counter()
     jax.block_until_ready(step(end_steps[0]))
     first = time.perf_counter() - t0
@@ -99,6 +116,8 @@ def measure(n, mode, dtype_name, args):
     t0 = time.perf_counter()
     jax.block_until_ready(rmijax.rmi(offline_traj, params, mode=mode, window=args.window).upper)
     offline_rate = count / (time.perf_counter() - t0)
+    flops = step_flops(params, traj, mode, args.window)
+    gflops = flops / timing["p50_s"] / 1e9
     record = {
         "n": n,
         "K": 4**n,
@@ -112,12 +131,40 @@ def measure(n, mode, dtype_name, args):
         "offline_steps": count,
         "offline_steps_per_s": offline_rate,
         "budget_ratio": timing["p50_s"] / REAL_TIME_BUDGET_S,
+        "temp_mb": working_set_mb(step, end_steps[0]),
         "peak_rss_mb": peak_rss_mb(),
+        "flops": flops,
+        "gflops": gflops,
+        "peak_pct": 100.0 * gflops / args.peak_gflops,
+        "enumerate_speedup": "-",
         "numpy_speedup": "-",
     }
+    if n in args.enumerate_links:
+        record.update(enumerate_comparison(params, traj, mode, args, timing["p50_s"]))
     if n in args.numpy_links and dtype_name == "float64":
         record.update(numpy_comparison(n, mode, args))
     return record
+
+
+def enumerate_comparison(params, traj, mode, args, p50_s):
+    """p50 of the same end step with every corner enumerated (the definition of RMI)."""
+    import jax
+    import jax.numpy as jnp
+
+    import rmijax
+
+    def enumerated(t):
+        return rmijax.rmi_step(traj, params, t, mode=mode, window=args.window, search="enumerate")
+
+    step = jax.jit(enumerated)
+    jax.block_until_ready(step(args.window + 1))
+    ends = [jnp.asarray(args.window + 1 + i % 200) for i in range(args.calls)]
+    timing = time_calls(step, lambda i: (ends[i],), calls=args.calls, max_seconds=args.max_seconds)
+    return {
+        "enumerate_p50_ms": timing["p50_s"] * 1e3,
+        "enumerate_calls": timing["calls"],
+        "enumerate_speedup": f"{timing['p50_s'] / p50_s:.1f}x",
+    }
 
 
 def numpy_comparison(n, mode, args):
@@ -164,8 +211,9 @@ def plot(records, path):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(7, 4.5))
+    fig, ax = plt.subplots(figsize=(7.5, 4.8))
     groups = sorted({(r["mode"], r["dtype"]) for r in records})
+    colors = {"coupled": "C0", "per_joint": "C1"}
     for mode, dtype in groups:
         rows = sorted(
             (r for r in records if (r["mode"], r["dtype"]) == (mode, dtype)), key=lambda r: r["n"]
@@ -173,15 +221,28 @@ def plot(records, path):
         ax.plot(
             [r["n"] for r in rows],
             [r["p50_ms"] for r in rows],
-            marker="o",
-            ls="-" if mode == "coupled" else "--",
+            marker="o" if dtype == "float64" else "s",
+            ls="-" if dtype == "float64" else "--",
+            color=colors[mode],
             label=f"{mode}, {dtype}",
         )
+        enumerated = [r for r in rows if "enumerate_p50_ms" in r]
+        if enumerated and dtype == "float64":
+            ax.plot(
+                [r["n"] for r in enumerated],
+                [r["enumerate_p50_ms"] for r in enumerated],
+                marker="x",
+                ls=":",
+                color=colors[mode],
+                label=f"{mode}, {dtype}, all 4^n corners enumerated",
+            )
     ax.axhline(1.0, color="k", lw=0.8, ls=":", label="1 ms (1 kHz loop)")
     ax.set_yscale("log")
     ax.set_xlabel("links n (K = 4^n corners)")
     ax.set_ylabel("online latency per end step, p50 [ms]")
-    ax.set_title(f"exact RMI, window {records[0]['window']}, {device()}", fontsize=9)
+    ax.set_title(
+        f"exact RMI (p50 per end step), window {records[0]['window']}, {device()}", fontsize=9
+    )
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
@@ -227,6 +288,20 @@ def main(argv=None):
         help="sizes compared with the NumPy reference (float64)",
     )
     parser.add_argument(
+        "--enumerate-links",
+        type=int,
+        nargs="*",
+        default=[1, 2, 3, 4, 5],
+        help="sizes also timed with every corner enumerated (search='enumerate')",
+    )
+    parser.add_argument(
+        "--peak-gflops",
+        type=float,
+        default=147.0,
+        help="the machine's peak GFLOP/s for the '%% peak' column (default: 2 AVX-512 "
+        "cores at 2.3 GHz, float64, PERF_NOTES)",
+    )
+    parser.add_argument(
         "--numpy-steps",
         type=int,
         default=3,
@@ -251,13 +326,19 @@ def main(argv=None):
                 records.append(measure(n, mode, dtype, args))
                 lines = table(records, COLUMNS).splitlines()
                 print("\n".join(lines if len(records) == 1 else lines[-1:]), flush=True)
-    meta = {"device": device(), "script": "benchmarks/scaling.py", "args": vars(args)}
+    meta = {
+        "device": device(),
+        "jax": jax.__version__,
+        "script": "benchmarks/scaling.py",
+        "args": vars(args),
+    }
     write_json(args.json, records, meta)
     if args.plot:
         plot(records, args.plot)
     print(
         f"device: {meta['device']}; x 1 ms = p50 / 1 ms; steps/s over 'offl. steps' end "
-        "steps (1501 = a whole 15 s run)"
+        "steps (1501 = a whole 15 s run); flop/step from XLA's cost analysis; vs enum. = "
+        "speed-up over enumerating all corners"
     )
 
 

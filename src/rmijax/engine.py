@@ -40,9 +40,11 @@ __all__ = [
     "ProblemTooLargeError",
     "check_memory",
     "costate_weights",
+    "enumerate_corners",
     "estimate_memory",
     "rmi",
     "rmi_step",
+    "window_constants",
     "window_extremes",
 ]
 
@@ -125,7 +127,15 @@ def _validate(traj, params, mode, window, noise_lo, noise_hi, search="auto"):
 
 
 def check_search(search, model):
-    """Validate the ``search`` option (see :data:`SEARCHES`) for ``model``."""
+    """Validate the ``search`` option (see :data:`SEARCHES`) for ``model``.
+
+    A callable is also accepted (library-internal): a *chooser*
+    ``(perturbation, weight, offset, consts) -> th`` used in place of
+    enumeration (see :func:`enumerate_corners`); ``rmijax.bounds`` uses it
+    for methods that search the box differently.
+    """
+    if callable(search):
+        return
     if search not in SEARCHES:
         raise ValueError(f"unknown search {search!r}; choose one of {SEARCHES}")
     if _factored(model, search) and model.n_joints > planar_search.MAX_LINKS:
@@ -137,7 +147,24 @@ def check_search(search, model):
 
 
 def _factored(model, search):
-    return search == "auto" and is_planar_arm(model)
+    return isinstance(search, str) and search == "auto" and is_planar_arm(model)
+
+
+def enumerate_corners(perturbation, weight, offset, consts):
+    """The exhaustive chooser: the corner maximising ``weight * perturbation(th)``.
+
+    Args:
+        perturbation: ``th (p,) -> gv_i``, the track's own perturbation.
+        weight: ``sigma``, sign times the costate weight.
+        offset: ``sigma v_i``, for the tie tolerance (:func:`_pick_corner`).
+        consts: the window constants; ``corners`` (K, p) is used.
+
+    Returns:
+        The chosen corner (p,).
+    """
+    corners = consts["corners"]
+    scores = jax.vmap(lambda th: weight * perturbation(th))(corners)
+    return corners[_pick_corner(scores, offset)]
 
 
 def estimate_memory(
@@ -145,7 +172,9 @@ def estimate_memory(
 ) -> int:
     """Estimated peak bytes of the working set of one end step's window.
 
-    For the planar arm with ``search="auto"`` see :func:`_estimate_factored`
+    A chooser passed as ``search`` may bring its own ``estimate_memory(params,
+    mode=, itemsize=)``. For the planar arm with ``search="auto"`` see
+    :func:`_estimate_factored`
     (``O(n^3 2^n)`` coupled, ``O(n 4^n)`` per_joint). When corners are
     enumerated, the inner step evaluates every corner on every track: ``4n x K`` values
     per intermediate, and XLA keeps ``O(n^2)`` of them alive at once. Measured
@@ -160,6 +189,8 @@ def estimate_memory(
     n, k = params.n_joints, params.n_corners
     itemsize = jnp.dtype(dtype or params.dtype).itemsize
     tracks = 4 * n
+    if callable(search) and hasattr(search, "estimate_memory"):
+        return int(search.estimate_memory(params, mode=mode, itemsize=itemsize))
     if _factored(params.model, search):
         return _estimate_factored(n, mode, itemsize)
     if mode == "coupled" and params.model.forward_dynamics is not None:
@@ -247,7 +278,27 @@ def costate_weights(kp, kd, dt, window):
     return jnp.flip(vel_weights, 0)  # step s weighs with (A')^(N-1-s) c
 
 
-def _window_data(traj, params, window):
+def window_constants(params, kp, kd, dt, window, search="auto"):
+    """The arrays every window shares: costate weights, the box and, if enumerated, corners.
+
+    The ``(K, p)`` corner tensor is built only when ``search`` enumerates it: a
+    chooser or the factored search never needs it (at 16 links it would have
+    ``2^32`` rows).
+    """
+    consts = dict(
+        weights=costate_weights(kp, kd, dt, window),
+        nominal=params.nominal,
+        lo=params.lo,
+        hi=params.hi,
+        kp=kp,
+        kd=kd,
+    )
+    if not callable(search) and not _factored(params.model, search):
+        consts["corners"] = params.corners
+    return consts
+
+
+def _window_data(traj, params, window, search="auto"):
     """Arrays one window needs, padded so that any end step slices a fixed length.
 
     ``traj`` and ``params`` arrive cast to one dtype (:func:`_cast`).
@@ -261,19 +312,13 @@ def _window_data(traj, params, window):
         x_n=traj.x_n,
         x_pad=pad(traj.x_n),
         qdd_pad=pad(traj.qdd_n),
-        weights=costate_weights(traj.kp, traj.kd, traj.dt, window),
-        corners=params.corners,
-        nominal=params.nominal,
-        lo=params.lo,
-        hi=params.hi,
-        kp=traj.kp,
-        kd=traj.kd,
+        **window_constants(params, traj.kp, traj.kd, traj.dt, window, search),
     )
 
 
 def _end_step_fn(traj, params, mode, window, search):
     """The window data and ``t_f -> extremes (2, n, 2)`` of one end step."""
-    data = _window_data(traj, params, window)
+    data = _window_data(traj, params, window, search)
     fn = functools.partial(
         _window_extremes,
         data=data,
@@ -341,15 +386,16 @@ def window_extremes(u_win, xn_win, qddn_win, active, x0, consts, *, model, mode,
         consts: mapping with ``weights`` (N, n, 2) costate velocity parts,
             ``corners`` (K, p), ``nominal``, ``lo``, ``hi`` (p,), ``kp``, ``kd`` (n,).
         model: the :class:`~rmijax.model.RobotModel`; mode: ``coupled`` or
-            ``per_joint``; dt: step in s; search: see :data:`SEARCHES`.
+            ``per_joint``; dt: step in s; search: see :data:`SEARCHES` (or a
+            chooser, see :func:`check_search`).
     """
     n = model.n_joints
     extreme, joint, sensor = _tracks(n)
     dtype = u_win.dtype
     sign = jnp.asarray(1 - 2 * extreme, dtype)  # +1 max, -1 min
     onehot = jnp.asarray(np.eye(n)[joint], dtype)  # (4n, n)
-    corners, nominal = consts["corners"], consts["nominal"]
-    kp, kd = consts["kp"], consts["kd"]
+    nominal, kp, kd = consts["nominal"], consts["kp"], consts["kd"]
+    choose = search if callable(search) else enumerate_corners
     sigma = sign[None, :] * consts["weights"][:, joint, sensor]  # (N, 4n)
     box = (nominal, consts["lo"], consts["hi"], kp, kd, dt)
 
@@ -370,11 +416,11 @@ def window_extremes(u_win, xn_win, qddn_win, active, x0, consts, *, model, mode,
             v = servo_command(q, qd, u, kp, kd)
             tau = computed_torque(model, nominal, q, qd, v)
 
-            def score(th):
-                return sigma_t * jnp.dot(onehot_t, model.accelerations(q, qd, tau, th) - v)
+            def perturbation(th):
+                return jnp.dot(onehot_t, model.accelerations(q, qd, tau, th) - v)
 
-            best = _pick_corner(jax.vmap(score)(corners), sigma_t * jnp.dot(onehot_t, v))
-            gv = model.accelerations(q, qd, tau, corners[best]) - v
+            th = choose(perturbation, sigma_t, sigma_t * jnp.dot(onehot_t, v), consts)
+            gv = model.accelerations(q, qd, tau, th) - v
             return jnp.stack(closed_loop_step(q, qd, u, gv, kp, kd, dt), axis=-1)
 
         def step(states, inputs):
@@ -411,8 +457,7 @@ def window_extremes(u_win, xn_win, qddn_win, active, x0, consts, *, model, mode,
                 bias_i = jnp.dot(onehot_t, model.bias(q, qd, th))
                 return (tau_i - jnp.dot(row, qdd_others) - bias_i) / jnp.dot(row, onehot_t) - v_i
 
-            gvs = jax.vmap(perturbation)(corners)
-            gv = gvs[_pick_corner(sigma_t * gvs, sigma_t * v_i)]
+            gv = perturbation(choose(perturbation, sigma_t, sigma_t * v_i, consts))
             q_i, qd_i = closed_loop_step(
                 x[0],
                 x[1],

@@ -19,7 +19,7 @@ import jax.numpy as jnp
 
 from rmijax import _checks
 from rmijax.control import closed_loop_step, feedforward, servo_command
-from rmijax.engine import MODES, check_memory, costate_weights, window_extremes
+from rmijax.engine import MODES, check_memory, window_constants, window_extremes
 from rmijax.params import UncertainRobot
 
 __all__ = ["METHODS", "Monitor", "MonitorOutput", "MonitorState", "monitor"]
@@ -140,15 +140,7 @@ def monitor(
     _checks.check_stable(kp, kd, dt)
     lo, hi = _checks.noise_interval(noise_lo, noise_hi, n, dtype)
     check_memory(params, mode=mode, window=window)  # one tick holds one end step's window
-    consts = dict(
-        weights=costate_weights(kp, kd, dt, window),
-        corners=params.corners,
-        nominal=params.nominal,
-        lo=params.lo,
-        hi=params.hi,
-        kp=kp,
-        kd=kd,
-    )
+    consts = window_constants(params, kp, kd, dt, window)
     model = params.model
 
     def init(q_d0, qd_d0) -> MonitorState:
