@@ -63,6 +63,26 @@ def write_json(path, records, meta):
             json.dump({"meta": meta, "results": records}, handle, indent=2)
 
 
+def read_json(path):
+    """``(records, meta)`` of a file written by :func:`write_json`."""
+    with open(path) as handle:
+        data = json.load(handle)
+    return data["results"], data["meta"]
+
+
+def markdown_table(records, columns):
+    """The same table as :func:`table`, in Markdown."""
+    lines = [
+        "| " + " | ".join(h for _, h, _ in columns) + " |",
+        "|" + "---|" * len(columns),
+    ]
+    for rec in records:
+        lines.append(
+            "| " + " | ".join(fmt.format(rec[key]).strip() for key, _, fmt in columns) + " |"
+        )
+    return "\n".join(lines)
+
+
 def table(records, columns):
     """A plain-text table of ``records`` with ``columns = [(key, header, fmt)]``."""
     head = " | ".join(h for _, h, _ in columns)

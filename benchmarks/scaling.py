@@ -32,7 +32,9 @@ sys.path.insert(0, str(HERE))
 from _common import (  # noqa: E402
     REAL_TIME_BUDGET_S,
     device,
+    markdown_table,
     peak_rss_mb,
+    read_json,
     table,
     time_calls,
     write_json,
@@ -50,7 +52,7 @@ COLUMNS = [
     ("offline_steps", "offl. steps", "{:>11d}"),
     ("offline_steps_per_s", "steps/s", "{:>9.1f}"),
     ("budget_ratio", "x 1 ms", "{:>9.2f}"),
-    ("temp_mb", "XLA MB", "{:>7.1f}"),
+    ("temp_mb", "XLA MB", "{:>7.2g}"),
     ("peak_rss_mb", "RSS MB", "{:>7.0f}"),
     ("flops", "flop/step", "{:>9.2e}"),
     ("gflops", "GFLOP/s", "{:>7.1f}"),
@@ -205,7 +207,7 @@ def numpy_comparison(n, mode, args):
     }
 
 
-def plot(records, path):
+def plot(records, path, device_name):
     import matplotlib
 
     matplotlib.use("Agg")
@@ -241,7 +243,7 @@ def plot(records, path):
     ax.set_xlabel("links n (K = 4^n corners)")
     ax.set_ylabel("online latency per end step, p50 [ms]")
     ax.set_title(
-        f"exact RMI (p50 per end step), window {records[0]['window']}, {device()}", fontsize=9
+        f"exact RMI (p50 per end step), window {records[0]['window']}, {device_name}", fontsize=9
     )
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
@@ -309,9 +311,24 @@ def main(argv=None):
     )
     parser.add_argument("--json", default=None, help="write results here")
     parser.add_argument("--plot", default=None, help="save the latency plot here (PNG)")
+    parser.add_argument("--markdown", action="store_true", help="also print the table in Markdown")
+    parser.add_argument(
+        "--from-json",
+        default=None,
+        metavar="PATH",
+        help="measure nothing: print (and --plot) the results of an earlier --json",
+    )
     args = parser.parse_args(argv)
     if any(n < 1 for n in args.links):
         parser.error("--links must be >= 1")
+    if args.from_json:
+        records, meta = read_json(args.from_json)
+        print(table(records, COLUMNS))
+        if args.markdown:
+            print(markdown_table(records, COLUMNS))
+        if args.plot:
+            plot(records, args.plot, meta["device"])
+        return
 
     import jax
 
@@ -333,8 +350,10 @@ def main(argv=None):
         "args": vars(args),
     }
     write_json(args.json, records, meta)
+    if args.markdown:
+        print(markdown_table(records, COLUMNS))
     if args.plot:
-        plot(records, args.plot)
+        plot(records, args.plot, meta["device"])
     print(
         f"device: {meta['device']}; x 1 ms = p50 / 1 ms; steps/s over 'offl. steps' end "
         "steps (1501 = a whole 15 s run); flop/step from XLA's cost analysis; vs enum. = "
