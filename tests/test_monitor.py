@@ -7,6 +7,8 @@ import numpy as np
 import pytest
 
 import rmijax
+from rmijax.monitor import METHODS as MONITOR_METHODS
+from rmijax.short_window import short_window_bounds
 
 
 def run_monitor(mon, traj, readings):
@@ -67,6 +69,55 @@ def test_monitor_equals_offline_rmi_and_detect(arm, mode, fault):
         assert 150 <= expected_first <= 200  # stuck joint-2 sensors: caught within 0.5 s
 
 
+@pytest.mark.parametrize(
+    "mode, window, fault",
+    [
+        ("coupled", None, None),
+        ("coupled", None, rmijax.Fault("stuck_sensors", 1, 1.5)),
+        ("per_joint", None, rmijax.Fault("stuck_sensors", 1, 1.5)),
+        ("per_joint", 7, None),
+        ("coupled", 7, rmijax.Fault("bias", 0, 2.0, value=0.01)),
+    ],
+)
+def test_short_window_monitor_equals_offline(arm, mode, window, fault):
+    params, traj, th = arm
+    noise = ([-1e-4, -1e-3], [2e-4, 1e-3])
+    faults = [] if fault is None else [fault]
+    _, y_meas = rmijax.simulate(
+        traj, params, th, faults=faults, noise_lo=noise[0], noise_hi=noise[1], seed=11
+    )
+    options = {} if window is None else dict(window=window)
+    mon = rmijax.monitor(
+        params,
+        kp=traj.kp,
+        kd=traj.kd,
+        dt=traj.dt,
+        method="short_window",
+        mode=mode,
+        noise_lo=noise[0],
+        noise_hi=noise[1],
+        persistence=2,
+        **options,
+    )
+    state, out = run_monitor(mon, traj, y_meas)
+    bounds = short_window_bounds(
+        traj, params, y_meas, mode=mode, noise_lo=noise[0], noise_hi=noise[1], **options
+    )
+    np.testing.assert_allclose(out.lower, bounds.lower, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(out.upper, bounds.upper, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(out.nominal, bounds.nominal, rtol=0, atol=1e-12)
+    report = rmijax.detect(y_meas, bounds, persistence=2)
+    np.testing.assert_array_equal(out.alarm, report.alarms)
+    expected_first = -1 if report.first_alarm is None else round(report.first_alarm / traj.dt)
+    assert int(state.first_alarm) == expected_first
+    assert state.y_buffer.shape == (2 if window is None else window, 2, 2)  # fixed size
+    np.testing.assert_array_equal(state.y_first, y_meas[0])
+    if mode == "coupled" and fault is None:
+        assert expected_first == -1
+    elif mode == "coupled":  # per_joint is no safe threshold for n >= 2 (SPEC section 4)
+        assert round(fault.onset / traj.dt) <= expected_first <= round(fault.onset / traj.dt) + 5
+
+
 def test_monitor_vmaps_over_robots(arm):
     params, traj, _ = arm
     traj = rmijax.trajectory(["hold", "sine"], duration=1.0)
@@ -92,9 +143,10 @@ def test_monitor_vmaps_over_robots(arm):
         np.testing.assert_array_equal(batch.alarm[r], alone.alarm)
 
 
-def test_update_traces_once(arm):
+@pytest.mark.parametrize("method", MONITOR_METHODS)
+def test_update_traces_once(arm, method):
     params, traj, _ = arm
-    mon = rmijax.monitor(params, window=20)
+    mon = rmijax.monitor(params, method=method, window=20)
     chex.clear_trace_counter()
     update = jax.jit(chex.assert_max_traces(mon.update, n=1))
     state = mon.init(traj.q_d[0], traj.qd_d[0])

@@ -298,10 +298,12 @@ def window_constants(params, kp, kd, dt, window, search="auto"):
     return consts
 
 
-def _window_data(traj, params, window, search="auto"):
+def _window_data(traj, params, window, search="auto", starts=None):
     """Arrays one window needs, padded so that any end step slices a fixed length.
 
-    ``traj`` and ``params`` arrive cast to one dtype (:func:`_cast`).
+    ``traj`` and ``params`` arrive cast to one dtype (:func:`_cast`). ``starts``
+    (T+1, n, 2), if given, replaces ``x_n`` as the states the windows start
+    from (see :func:`_rmi_from_starts`); RMI itself passes None.
     """
 
     def pad(x):
@@ -310,15 +312,16 @@ def _window_data(traj, params, window, search="auto"):
     return dict(
         u=pad(traj.u_d),
         x_n=traj.x_n,
+        x_start=traj.x_n if starts is None else starts,
         x_pad=pad(traj.x_n),
         qdd_pad=pad(traj.qdd_n),
         **window_constants(params, traj.kp, traj.kd, traj.dt, window, search),
     )
 
 
-def _end_step_fn(traj, params, mode, window, search):
+def _end_step_fn(traj, params, mode, window, search, starts=None):
     """The window data and ``t_f -> extremes (2, n, 2)`` of one end step."""
-    data = _window_data(traj, params, window, search)
+    data = _window_data(traj, params, window, search, starts)
     fn = functools.partial(
         _window_extremes,
         data=data,
@@ -360,13 +363,14 @@ def _window_extremes(t_f, data, model, mode, window, dt, search):
     """``c x_max(t_f)``, ``c x_min(t_f)`` of every output: (2, n, 2) [extreme, joint, sensor].
 
     Slices end step ``t_f``'s window out of the padded arrays of
-    :func:`_window_data` and runs :func:`window_extremes` on it.
+    :func:`_window_data` and runs :func:`window_extremes` on it, from the start
+    state ``x_start(k0)`` (``x_n(k0)`` for RMI).
     """
     u_win = jax.lax.dynamic_slice_in_dim(data["u"], t_f, window, 0)
     xn_win = jax.lax.dynamic_slice_in_dim(data["x_pad"], t_f, window, 0)
     qddn_win = jax.lax.dynamic_slice_in_dim(data["qdd_pad"], t_f, window, 0)
     active = (t_f - window + jnp.arange(window)) >= 0
-    x0 = data["x_n"][jnp.maximum(t_f - window, 0)]  # (n, 2)
+    x0 = data["x_start"][jnp.maximum(t_f - window, 0)]  # (n, 2)
     return window_extremes(
         u_win, xn_win, qddn_win, active, x0, data, model=model, mode=mode, dt=dt, search=search
     )
@@ -382,7 +386,9 @@ def window_extremes(u_win, xn_win, qddn_win, active, x0, consts, *, model, mode,
         xn_win, qddn_win: (N, n, 2) nominal states and (N, n) nominal
             accelerations at ``k`` (used by ``per_joint`` mode only).
         active: (N,) bool, False for steps before the run (``k < 0``).
-        x0: (n, 2) the window's start ``x_n(k0)``.
+        x0: (n, 2) the window's start: ``x_n(k0)`` for RMI, a measured state
+            for :mod:`rmijax.short_window`. In ``per_joint`` mode each track
+            starts its own joint from ``x0`` and takes the others from ``xn_win``.
         consts: mapping with ``weights`` (N, n, 2) costate velocity parts,
             ``corners`` (K, p), ``nominal``, ``lo``, ``hi`` (p,), ``kp``, ``kd`` (n,).
         model: the :class:`~rmijax.model.RobotModel`; mode: ``coupled`` or
@@ -490,16 +496,16 @@ def _assemble(extremes, nominal, noise_lo, noise_hi, dt):
 
 
 @functools.partial(jax.jit, static_argnames=("mode", "window", "batch", "search"))
-def _rmi_all(traj, params, noise_lo, noise_hi, *, mode, window, batch, search="auto"):
-    data, fn = _end_step_fn(traj, params, mode, window, search)
+def _rmi_all(traj, params, noise_lo, noise_hi, starts=None, *, mode, window, batch, search="auto"):
+    data, fn = _end_step_fn(traj, params, mode, window, search, starts)
     end_steps = jnp.arange(traj.n_steps + 1)
     extremes = jax.lax.map(fn, end_steps, batch_size=batch)  # (T+1, 2, n, 2)
     return _assemble(extremes, data["x_n"], noise_lo, noise_hi, traj.dt)
 
 
 @functools.partial(jax.jit, static_argnames=("mode", "window", "search"))
-def _rmi_chunk(traj, params, end_steps, *, mode, window, search):
-    _, fn = _end_step_fn(traj, params, mode, window, search)
+def _rmi_chunk(traj, params, end_steps, starts=None, *, mode, window, search):
+    _, fn = _end_step_fn(traj, params, mode, window, search, starts)
     return jax.vmap(fn)(end_steps)
 
 
@@ -593,22 +599,83 @@ def rmi(
     """
     dtype, lo, hi = _validate(traj, params, mode, window, noise_lo, noise_hi, search)
     traj, params = _cast(traj, params, dtype)
-    n_end = traj.n_steps + 1
-    batch = _batch_size(
-        params, mode, window, dtype, memory_budget, n_end, chunk_size, search=search
+    bounds = _rmi_from_starts(
+        traj,
+        params,
+        None,
+        lo,
+        hi,
+        mode=mode,
+        window=window,
+        memory_budget=memory_budget,
+        chunk_size=chunk_size,
+        progress=progress,
+        search=search,
     )
-    concrete = all(_checks.is_concrete(a) for a in jax.tree_util.tree_leaves((traj, params)))
-    if progress and concrete:
-        bounds = _rmi_with_progress(traj, params, lo, hi, mode, window, batch, search)
-    else:
-        bounds = _rmi_all(
-            traj, params, lo, hi, mode=mode, window=int(window), batch=batch, search=search
-        )
     _check_result(bounds)
     return bounds
 
 
-def _rmi_with_progress(traj, params, lo, hi, mode, window, batch, search):
+# --------------------------------------------------------------------------
+# Windows from given start states (used by rmijax.short_window)
+# --------------------------------------------------------------------------
+
+
+def _rmi_from_starts(
+    traj,
+    params,
+    starts,
+    offset_lo,
+    offset_hi,
+    *,
+    mode,
+    window,
+    memory_budget,
+    chunk_size,
+    progress,
+    search,
+):
+    """RMI's windows started from ``starts`` instead of the nominal state (private entry).
+
+    End step ``t_f``'s tracks start at ``starts[max(0, t_f - N)]`` and run the
+    unchanged RMI recursion (costate weights, corner choice, both modes).
+    :func:`rmi` calls it with ``starts=None`` (the nominal ``x_n``);
+    :func:`rmijax.short_window.short_window_bounds` with the readings.
+
+    Args:
+        traj, params: already validated and cast to one dtype (:func:`_cast`).
+        starts: (T+1, n, 2) window start states, same dtype, or None for ``x_n``.
+        offset_lo, offset_hi: added to the min and max tracks' outputs;
+            (n, 2) or (T+1, n, 2) (rad, rad/s).
+        mode, window, memory_budget, chunk_size, progress, search: as :func:`rmi`.
+
+    Returns:
+        :class:`Bounds` (T+1, n, 2), not yet checked (:func:`_check_result`).
+    """
+    n_end = traj.n_steps + 1
+    batch = _batch_size(
+        params, mode, window, traj.dtype, memory_budget, n_end, chunk_size, search=search
+    )
+    leaves = jax.tree_util.tree_leaves((traj, params, starts))
+    concrete = all(_checks.is_concrete(a) for a in leaves)
+    if progress and concrete:
+        return _rmi_with_progress(
+            traj, params, offset_lo, offset_hi, mode, window, batch, search, starts
+        )
+    return _rmi_all(
+        traj,
+        params,
+        offset_lo,
+        offset_hi,
+        starts,
+        mode=mode,
+        window=int(window),
+        batch=batch,
+        search=search,
+    )
+
+
+def _rmi_with_progress(traj, params, lo, hi, mode, window, batch, search, starts=None):
     from tqdm.auto import tqdm
 
     n_end = traj.n_steps + 1
@@ -619,7 +686,13 @@ def _rmi_with_progress(traj, params, lo, hi, mode, window, batch, search):
             ends = np.arange(chunk * batch, (chunk + 1) * batch)
             ends = np.minimum(ends, n_end - 1)  # fixed chunk shape: no retrace on the last
             extremes = _rmi_chunk(
-                traj, params, jnp.asarray(ends), mode=mode, window=int(window), search=search
+                traj,
+                params,
+                jnp.asarray(ends),
+                starts,
+                mode=mode,
+                window=int(window),
+                search=search,
             )
             extremes.block_until_ready()
             pieces.append(extremes)

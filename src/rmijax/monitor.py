@@ -7,6 +7,11 @@ states and nominal accelerations), so it can be carried through ``lax.scan``,
 ``jit``-ed and ``vmap``-ed over many robots, and its memory does not grow with
 the run. Tick ``k``'s bounds are RMI's end step ``k``: they use the
 feed-forward up to tick ``k-1`` and equal :func:`rmijax.rmi` at every tick.
+
+With ``method="short_window"`` the state also buffers the last ``window``
+readings: tick ``k``'s window starts from the reading of tick
+``k0 = max(0, k - N)``, and the bounds equal
+:func:`rmijax.short_window.short_window_bounds` at every tick.
 """
 
 from __future__ import annotations
@@ -21,11 +26,15 @@ from rmijax import _checks
 from rmijax.control import closed_loop_step, feedforward, servo_command
 from rmijax.engine import MODES, check_memory, window_constants, window_extremes
 from rmijax.params import UncertainRobot
+from rmijax.short_window import start_error_bounds, transition_powers
 
 __all__ = ["METHODS", "Monitor", "MonitorOutput", "MonitorState", "monitor"]
 
-METHODS = ("rmi",)
-"""Bound methods the monitor can run."""
+METHODS = ("rmi", "short_window")
+"""Bound methods the monitor can run: exact RMI, and short windows from the readings."""
+
+DEFAULT_WINDOWS = {"rmi": 100, "short_window": 2}
+"""The window ``N`` (ticks) of each method when ``window`` is not given."""
 
 
 @jax.tree_util.register_dataclass
@@ -40,6 +49,10 @@ class MonitorState:
         u_buffer: (N, n) ``u_d(k-N .. k-1)``, zeros before the run.
         x_buffer: (N, n, 2) ``x_n(k-N .. k-1)``.
         qdd_buffer: (N, n) ``qdd_n(k-N .. k-1)``.
+        y_buffer: (N, n, 2) readings ``y(k-N .. k-1)`` (``short_window``;
+            zeros before the run), (0, n, 2) for ``rmi``.
+        y_first: (n, 2) the reading of tick 0, the window start while
+            ``k <= N`` (``short_window``; zeros for ``rmi``).
         run_length: (n, 2) int32 consecutive out-of-band ticks per output.
         first_alarm: int32 tick of the first alarm so far, -1 if none.
     """
@@ -50,6 +63,8 @@ class MonitorState:
     u_buffer: jax.Array
     x_buffer: jax.Array
     qdd_buffer: jax.Array
+    y_buffer: jax.Array
+    y_first: jax.Array
     run_length: jax.Array
     first_alarm: jax.Array
 
@@ -93,22 +108,30 @@ def monitor(
     dt: float = 0.01,
     method: str = "rmi",
     mode: str = "coupled",
-    window: int = 100,
+    window: int | None = None,
     noise_lo=0.0,
     noise_hi=0.0,
     persistence: int = 1,
     tol: float = 1e-9,
 ) -> Monitor:
-    """An online RMI fault monitor: ``init(q_d0, qd_d0)`` and ``update(state, desired, y_meas)``.
+    """An online fault monitor: ``init(q_d0, qd_d0)`` and ``update(state, desired, y_meas)``.
 
     Args:
         params: the robot and its parameter box.
         kp, kd: the controller's gains, scalar or (n,).
         dt: the tick in s.
-        method: ``"rmi"`` (exhaustive corners, the exact paper algorithm).
+        method: ``"rmi"`` (exhaustive corners, the exact paper algorithm) or
+            ``"short_window"`` (the paper's section 4: each window starts
+            from the reading ``N`` ticks back; see
+            :func:`rmijax.short_window.short_window_bounds`). Inside ``jit``
+            a NaN reading used as a window start makes the bounds of the
+            ticks that start from it NaN, so every output alarms there.
         mode: ``"coupled"`` (default) or ``"per_joint"``.
-        window: RMI window ``N`` in ticks.
+        window: window ``N`` in ticks; default 100 for ``rmi``, 2 for
+            ``short_window`` (:data:`DEFAULT_WINDOWS`).
         noise_lo, noise_hi: sensor noise bounds, scalar, (2,) or (n, 2).
+            ``short_window`` also widens its bounds by their effect on the
+            window start.
         persistence: consecutive out-of-band ticks for an alarm.
         tol: how far outside a band a reading must be.
 
@@ -131,6 +154,7 @@ def monitor(
         raise ValueError(f"unknown method {method!r}; the monitor runs {METHODS}")
     if mode not in MODES:
         raise ValueError(f"unknown mode {mode!r}; choose one of {MODES}")
+    window = DEFAULT_WINDOWS[method] if window is None else window
     window = _checks.positive_int("window", window, "ticks")
     persistence = _checks.positive_int("persistence", persistence)
     tol = _checks.tolerance(tol)
@@ -142,6 +166,10 @@ def monitor(
     check_memory(params, mode=mode, window=window)  # one tick holds one end step's window
     consts = window_constants(params, kp, kd, dt, window)
     model = params.model
+    measured_start = method == "short_window"
+    if measured_start:
+        error_lo, error_hi = start_error_bounds(transition_powers(kp, kd, dt, window), lo, hi)
+    readings_kept = window if measured_start else 0
 
     def init(q_d0, qd_d0) -> MonitorState:
         q0 = _checks.float_array("q_d0", q_d0, (n,), dtype=dtype)
@@ -154,6 +182,8 @@ def monitor(
             u_buffer=jnp.zeros((window, n), dtype),
             x_buffer=jnp.zeros((window, n, 2), dtype),
             qdd_buffer=jnp.zeros((window, n), dtype),
+            y_buffer=jnp.zeros((readings_kept, n, 2), dtype),
+            y_first=jnp.zeros((n, 2), dtype),
             run_length=jnp.zeros((n, 2), jnp.int32),
             first_alarm=jnp.full((), -1, jnp.int32),
         )
@@ -176,6 +206,9 @@ def monitor(
         # Bounds of end step k: the window k-N .. k-1 is what the buffers hold.
         active = (k - window + jnp.arange(window)) >= 0
         x_start = jnp.where(k >= window, state.x_buffer[0], state.x_first)
+        if measured_start:  # short_window: from the reading of tick max(0, k - N)
+            y_first = jnp.where(k == 0, y, state.y_first)
+            x_start = jnp.where(k >= window, state.y_buffer[0], y_first)
         extremes = window_extremes(
             state.u_buffer,
             state.x_buffer,
@@ -187,7 +220,12 @@ def monitor(
             mode=mode,
             dt=dt,
         )
-        upper, lower = extremes[0] + hi, extremes[1] + lo
+        if measured_start:  # widened by the start reading's noise over t_f - k0 steps
+            steps = jnp.minimum(k, window)
+            upper = extremes[0] + (hi + error_hi[steps])
+            lower = extremes[1] + (lo + error_lo[steps])
+        else:
+            upper, lower = extremes[0] + hi, extremes[1] + lo
 
         # Detection with persistence; NaN is outside.
         nan_reading = jnp.isnan(y)
@@ -213,6 +251,12 @@ def monitor(
             u_buffer=jnp.concatenate([state.u_buffer[1:], u[None]], axis=0),
             x_buffer=jnp.concatenate([state.x_buffer[1:], x_nom[None]], axis=0),
             qdd_buffer=jnp.concatenate([state.qdd_buffer[1:], qdd_nom[None]], axis=0),
+            y_buffer=(
+                jnp.concatenate([state.y_buffer[1:], y[None]], axis=0)
+                if measured_start
+                else state.y_buffer
+            ),
+            y_first=y_first if measured_start else state.y_first,
             run_length=run_length.astype(jnp.int32),
             first_alarm=first_alarm,
         )

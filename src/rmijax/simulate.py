@@ -161,47 +161,82 @@ def _locked_accelerations(model, q, qd, tau, th, locked):
     return jnp.linalg.solve(reduced, jnp.where(keep, rhs, 0.0))
 
 
+def _read(k, t, x, held, noise_k, tables, dt):
+    """The readings (n, 2) of state ``x`` at step ``k`` (time ``t``), and the held values."""
+    healthy = x + noise_k
+    held = jnp.where(k == tables.hold_onset, healthy, held)
+    reading = jnp.where(k >= tables.hold_onset, held, healthy)
+    reading = jnp.where(k >= tables.zero_onset, 0.0, reading)
+    reading = reading + jnp.where(k >= tables.bias_onset, tables.bias_value, 0.0)
+    drift_time = t - tables.drift_onset.astype(t.dtype) * dt
+    reading = reading + jnp.where(k >= tables.drift_onset, tables.drift_rate * drift_time, 0.0)
+    return reading, held
+
+
+def _plant_step(carry, inputs, *, params, th, kp, kd, dt, tables, limit):
+    """One explicit-Euler step of the true plant under the controller (a ``lax.scan`` body).
+
+    Shared by :func:`simulate` and :mod:`rmijax.constant_corners`, so that both
+    step the plant with exactly the same arithmetic.
+
+    Args:
+        carry: ``(x, held, diverged)``: true state (n, 2), held readings
+            (n, 2) of stuck sensors, int32 step of divergence (never: int32 max).
+        inputs: ``(k, t, u, noise_k)``: step, time (s), feed-forward (n,),
+            reading noise (n, 2).
+        params: the robot (its ``nominal`` drives the controller); th: (p,)
+            true parameters; kp, kd: (n,) gains; dt: step in s.
+        tables: the faults as per-output onset tables (:func:`_fault_tables`).
+        limit: divergence limit on ``|x|``.
+
+    Returns:
+        ``(carry at k+1, (x(k), reading(k)))``; a diverged state freezes.
+    """
+    x, held, diverged = carry
+    k, t, u, noise_k = inputs
+    model, nominal = params.model, params.nominal
+    locked = k >= tables.lock_onset
+    x = x.at[:, 1].set(jnp.where(locked, 0.0, x[:, 1]))  # a locked joint stands still
+    reading, held = _read(k, t, x, held, noise_k, tables, dt)
+    v = servo_command(reading[:, 0], reading[:, 1], u, kp, kd)
+    tau = computed_torque(model, nominal, reading[:, 0], reading[:, 1], v)
+    tau = jnp.where(k >= tables.free_onset, 0.0, tau)
+    q, qd = x[:, 0], x[:, 1]
+    qdd = jax.lax.cond(
+        jnp.any(locked),
+        lambda: _locked_accelerations(model, q, qd, tau, th, locked),
+        lambda: model.accelerations(q, qd, tau, th),
+    )
+    nxt = jnp.stack([q + dt * qd, qd + dt * qdd], axis=-1)
+    bad = ~jnp.all(jnp.isfinite(nxt)) | jnp.any(jnp.abs(nxt) > limit)
+    diverged_now = jnp.where((diverged == _NEVER) & bad, k + 1, diverged)
+    nxt = jnp.where(diverged_now == _NEVER, nxt, x)  # freeze: no overflow, no NaN
+    return (nxt, held, diverged_now), (x, reading)
+
+
+def _plant_start(x0):
+    """The :func:`_plant_step` carry of a run starting at state ``x0`` (n, 2)."""
+    return (x0, jnp.zeros_like(x0), jnp.asarray(_NEVER, jnp.int32))
+
+
 def _run(traj, params, th, noise, tables, limit):
     """One plant run: true states and readings (T+1, n, 2), and the divergence step."""
-    model, nominal = params.model, params.nominal
-    kp, kd, dt = traj.kp, traj.kd, traj.dt
     n_samples = traj.n_steps + 1
     steps = jnp.arange(n_samples, dtype=jnp.int32)
-    times = traj.t
-
-    def read(k, t, x, held, noise_k):
-        healthy = x + noise_k
-        held = jnp.where(k == tables.hold_onset, healthy, held)
-        reading = jnp.where(k >= tables.hold_onset, held, healthy)
-        reading = jnp.where(k >= tables.zero_onset, 0.0, reading)
-        reading = reading + jnp.where(k >= tables.bias_onset, tables.bias_value, 0.0)
-        drift_time = t - tables.drift_onset.astype(t.dtype) * dt
-        reading = reading + jnp.where(k >= tables.drift_onset, tables.drift_rate * drift_time, 0.0)
-        return reading, held
-
-    def step(carry, inputs):
-        x, held, diverged = carry
-        k, t, u, noise_k = inputs
-        locked = k >= tables.lock_onset
-        x = x.at[:, 1].set(jnp.where(locked, 0.0, x[:, 1]))  # a locked joint stands still
-        reading, held = read(k, t, x, held, noise_k)
-        v = servo_command(reading[:, 0], reading[:, 1], u, kp, kd)
-        tau = computed_torque(model, nominal, reading[:, 0], reading[:, 1], v)
-        tau = jnp.where(k >= tables.free_onset, 0.0, tau)
-        q, qd = x[:, 0], x[:, 1]
-        qdd = jax.lax.cond(
-            jnp.any(locked),
-            lambda: _locked_accelerations(model, q, qd, tau, th, locked),
-            lambda: model.accelerations(q, qd, tau, th),
-        )
-        nxt = jnp.stack([q + dt * qd, qd + dt * qdd], axis=-1)
-        bad = ~jnp.all(jnp.isfinite(nxt)) | jnp.any(jnp.abs(nxt) > limit)
-        diverged_now = jnp.where((diverged == _NEVER) & bad, k + 1, diverged)
-        nxt = jnp.where(diverged_now == _NEVER, nxt, x)  # freeze: no overflow, no NaN
-        return (nxt, held, diverged_now), (x, reading)
-
-    init = (traj.x_n[0], jnp.zeros_like(traj.x_n[0]), jnp.asarray(_NEVER, jnp.int32))
-    (_, _, diverged), (states, readings) = jax.lax.scan(step, init, (steps, times, traj.u_d, noise))
+    step = functools.partial(
+        _plant_step,
+        params=params,
+        th=th,
+        kp=traj.kp,
+        kd=traj.kd,
+        dt=traj.dt,
+        tables=tables,
+        limit=limit,
+    )
+    init = _plant_start(traj.x_n[0])
+    (_, _, diverged), (states, readings) = jax.lax.scan(
+        step, init, (steps, traj.t, traj.u_d, noise)
+    )
     after = (steps >= diverged)[:, None, None]
     states = jnp.where(after, jnp.nan, states)
     readings = jnp.where(after, jnp.nan, readings)
