@@ -37,5 +37,8 @@ def test_public_api_is_listed():
         "trajectory_from_samples",
         "rmi",
         "rmi_step",
+        "bounds",
+        "worst_case",
+        "worst_case_table",
     ):
         assert name in rmijax.__all__

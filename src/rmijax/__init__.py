@@ -27,6 +27,12 @@ from rmijax.engine import (
     rmi as rmi,
     rmi_step as rmi_step,
 )
+from rmijax.methods import (
+    DEFAULT_WINDOWS as DEFAULT_WINDOWS,
+    METHODS as METHODS,
+    SCALABLE_METHODS as SCALABLE_METHODS,
+    bounds as bounds,
+)
 from rmijax.model import (
     GRAVITY as GRAVITY,
     RobotModel as RobotModel,
@@ -58,15 +64,23 @@ from rmijax.trajectory import (
     trajectory as trajectory,
     trajectory_from_samples as trajectory_from_samples,
 )
+from rmijax.worst_case import (
+    WorstCase as WorstCase,
+    worst_case as worst_case,
+    worst_case_table as worst_case_table,
+)
 
 __version__ = "0.1.0"
 
 __all__ = [
     "DEFAULT_MEMORY_BUDGET",
+    "DEFAULT_WINDOWS",
     "FAULT_KINDS",
     "GRAVITY",
+    "METHODS",
     "MODES",
     "PATHS",
+    "SCALABLE_METHODS",
     "SEARCHES",
     "Bounds",
     "Detection",
@@ -79,6 +93,8 @@ __all__ = [
     "RobotModel",
     "Trajectory",
     "UncertainRobot",
+    "WorstCase",
+    "bounds",
     "closed_loop_step",
     "containment",
     "corner_tensor",
@@ -100,4 +116,6 @@ __all__ = [
     "trajectory",
     "trajectory_from_samples",
     "uncertain_robot",
+    "worst_case",
+    "worst_case_table",
 ]
