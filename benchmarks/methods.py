@@ -1,0 +1,256 @@
+"""Compare every bound method on the same work: tightness, safety, detection, cost.
+
+Run from the repository root (float64, CPU):
+
+    python benchmarks/methods.py --json benchmarks/results/methods_cpu.json \\
+        --plot benchmarks/results/methods_cpu.png
+
+Cases (``--cases``, default all):
+
+- ``arm2_hold_sine``, ``arm2_hold_ramp``, ``arm2_hold_composite``,
+  ``arm2_slow_sine_composite``: the paper's two-joint runs (15 s);
+- ``preset2``, ``preset4``, ``preset6``: ``preset_arm(n)`` on slow_sine / sine
+  paths (10 s): every method;
+- ``preset8``, ``preset16``, ``preset32``: the methods that scale
+  (``rmijax.SCALABLE_METHODS``); at 16 and 32 links a shorter run (4 s, onsets
+  1.5 s and 3 s), 200 draws and a lighter worst-case search (two times, the
+  Monte-Carlo extremes as starts, 10 iterations), and ``corner_search`` timed
+  on single end steps only (``--corner-search-cost``; a whole run would take
+  hours: 7 s per end step at 16 links, 5 min at 32).
+
+The true robot of the fault runs is the paper's (masses x1.08, lengths -5 mm).
+For each case and method: band width over the worst-case range
+(:func:`rmijax.worst_case_table`, started from the Monte-Carlo extremes),
+containment of Monte-Carlo runs (all corners when ``K <= 4096``, plus uniform
+draws) and of the worst-case points, detection over the fault suite (every
+kind, every joint, each onset) and false alarms, and the offline cost per end
+step. Besides, ``corner_search`` against exhaustive corners on n = 1..6
+(:func:`rmijax.corner_search.corner_agreement`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import pathlib
+import sys
+import time
+
+import jax
+
+jax.config.update("jax_enable_x64", True)  # the comparison is in float64
+
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(pathlib.Path(__file__).parent))
+
+from _common import device, markdown_table, read_json, write_json  # noqa: E402
+
+import rmijax  # noqa: E402
+from rmijax.comparison import Case, compare, step_cost, summary_rows  # noqa: E402
+from rmijax.corner_search import corner_agreement  # noqa: E402
+from rmijax.experiments import paper_run, paper_true_parameters  # noqa: E402
+
+PAPER_CASES = (
+    "arm2_hold_sine",
+    "arm2_hold_ramp",
+    "arm2_hold_composite",
+    "arm2_slow_sine_composite",
+)
+PRESETS = (2, 4, 6, 8, 16, 32)
+CASES = PAPER_CASES + tuple(f"preset{n}" for n in PRESETS)
+BIG = 16
+"""From this many links on, the shorter protocol."""
+
+COLUMNS = [
+    ("case", "case", "{}"),
+    ("method", "method", "{}"),
+    ("ms_per_step", "ms/step", "{:.3g}"),
+    ("enc_width_over_worst", "enc width/worst", "{:.3g}"),
+    ("tach_width_over_worst", "tach width/worst", "{:.3g}"),
+    ("worst_points_inside", "worst pts in", "{:.3f}"),
+    ("mc_inside", "MC in", "{:.4f}"),
+    ("mc_clean_runs", "MC clean runs", "{:.3f}"),
+    ("detected", "detected", "{:.2f}"),
+    ("median_latency", "median latency s", "{:.2f}"),
+    ("false_alarms_free", "false alarms (free)", "{}"),
+    ("false_alarms_faulty", "false alarms (faulty, pre-onset)", "{}"),
+]
+
+
+def _paths(n):
+    return ["slow_sine"] + ["sine"] * (n - 1)
+
+
+def build_case(name):
+    """``(Case, methods, compare options, corner_search cost-only)`` of a case name."""
+    if name in PAPER_CASES:
+        params, traj = paper_run(name)
+        return Case(name, params, traj, paper_true_parameters(params)), rmijax.METHODS, {}, False
+    n = int(name.removeprefix("preset"))
+    params = rmijax.preset_arm(n)
+    big = n >= BIG
+    traj = rmijax.trajectory(_paths(n), duration=4.0 if big else 10.0)
+    case = Case(name, params, traj, paper_true_parameters(params))
+    if n <= 6:
+        return case, rmijax.METHODS, {}, False
+    methods = tuple(m for m in rmijax.SCALABLE_METHODS if not (big and m == "corner_search"))
+    options = {}
+    if big:
+        options = dict(
+            onsets=(1.5, 3.0),
+            draws=200,
+            times=[2.0, 3.9],
+            worst_options=dict(random_starts=0, iterations=10),
+            max_worst_starts=4,
+            timing_steps=20,
+        )
+    return case, methods, options, big
+
+
+def agreement_rows(sizes, log):
+    """corner_search against the exhaustive corner on ``preset_arm(n)``, both modes."""
+    rows = []
+    for n in sizes:
+        params = rmijax.preset_arm(n)
+        traj = rmijax.trajectory(_paths(n), duration=3.0)
+        end_steps = np.linspace(100, 300, 4 if n >= 5 else 12).astype(int)
+        for mode in rmijax.MODES:
+            started = time.perf_counter()
+            found = corner_agreement(traj, params, end_steps, mode=mode)
+            rows.append(
+                {
+                    "n": n,
+                    "mode": mode,
+                    "end_steps": int(end_steps.size),
+                    "decisions": found["decisions"],
+                    "agree": found["agree"],
+                    "agree_score": found["agree_score"],
+                    "max_abs_error": found["max_abs_error"],
+                    "max_rel_error": found["max_rel_error"],
+                }
+            )
+            log(
+                f"  agreement n={n} {mode}: {found['agree']:.4f} of {found['decisions']} "
+                f"decisions, max rel. error {found['max_rel_error']:.2g} "
+                f"({time.perf_counter() - started:.0f} s)"
+            )
+    return rows
+
+
+def plot(results, path):
+    """One panel per quantity: cost, width over worst case, containment, latency, false alarms."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = summary_rows(results)
+    cases = list(dict.fromkeys(r["case"] for r in rows))
+    methods = list(dict.fromkeys(r["method"] for r in rows))
+    quantities = [
+        ("ms_per_step", "offline cost, ms per end step", True),
+        ("enc_width_over_worst", "encoder band width / worst-case range", True),
+        ("tach_width_over_worst", "tachometer band width / worst-case range", True),
+        ("mc_inside", "Monte-Carlo samples inside", False),
+        ("median_latency", "median detection latency, s", False),
+        ("false_alarms_free", "false-alarm steps, fault-free run (+1)", True),
+    ]
+    fig, axes = plt.subplots(len(quantities), 1, figsize=(12, 3.0 * len(quantities)))
+    width = 0.8 / len(methods)
+    x = np.arange(len(cases))
+    for ax, (key, title, log_scale) in zip(axes, quantities, strict=True):
+        for i, method in enumerate(methods):
+            values = []
+            for case in cases:
+                match = [r[key] for r in rows if r["case"] == case and r["method"] == method]
+                value = match[0] if match and match[0] is not None else np.nan
+                values.append(value + 1 if key == "false_alarms_free" else value)
+            ax.bar(x + (i - len(methods) / 2 + 0.5) * width, values, width, label=method)
+        if key in ("enc_width_over_worst", "tach_width_over_worst"):
+            ax.axhline(1.0, color="k", lw=0.8, ls="--")
+        if log_scale:
+            ax.set_yscale("log")
+        ax.set_title(title)
+        ax.set_xticks(x, cases, rotation=20, fontsize=8)
+    axes[0].legend(ncol=len(methods), fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--cases", nargs="+", choices=CASES, default=list(CASES))
+    parser.add_argument(
+        "--agreement",
+        nargs="*",
+        type=int,
+        default=[1, 2, 3, 4, 5, 6],
+        help="link counts for corner_search against exhaustive corners (none: skip)",
+    )
+    parser.add_argument(
+        "--corner-search-cost",
+        nargs="*",
+        type=int,
+        default=[16],
+        help="link counts (16 or 32) where corner_search is timed on single end steps "
+        "(about 5 min per end step at 32)",
+    )
+    parser.add_argument("--draws", type=int, default=1000, help="uniform Monte-Carlo draws")
+    parser.add_argument("--json", help="write the results here")
+    parser.add_argument("--plot", help="save the figure here (PNG)")
+    parser.add_argument("--from-json", help="print and plot an earlier --json file; run nothing")
+    args = parser.parse_args(argv)
+
+    def log(message):
+        print(message, flush=True)
+
+    if args.from_json:
+        records, meta = read_json(args.from_json)
+        results, agreement, costs = records["cases"], records["agreement"], records["step_costs"]
+    else:
+        results, costs, agreement = [], [], []
+        meta = {"device": device(), "command": " ".join(sys.argv), "dtype": "float64"}
+
+        def save():
+            records = {"cases": results, "agreement": agreement, "step_costs": costs}
+            write_json(args.json, records, meta)
+
+        started = time.perf_counter()
+        for name in args.cases:
+            case, methods, options, cost_only = build_case(name)
+            options.setdefault("draws", args.draws)
+            results.append(compare(case, methods, log=log, **options))
+            if cost_only and case.params.n_joints in args.corner_search_cost:
+                cost = step_cost(case, "corner_search", end_steps=(150, 160))
+                costs.append({"case": name, "n": case.params.n_joints, **cost})
+                log(f"  corner_search: {cost['step_s']:.3g} s per end step (online, compiled)")
+            log(f"[{name}] done at {time.perf_counter() - started:.0f} s")
+        agreement = agreement_rows(args.agreement, log)
+        meta = {"device": device(), "command": " ".join(sys.argv), "dtype": "float64"}
+        write_json(args.json, {"cases": results, "agreement": agreement, "step_costs": costs}, meta)
+    print(markdown_table(summary_rows(results), COLUMNS))
+    if agreement:
+        print()
+        print(
+            markdown_table(
+                agreement,
+                [
+                    ("n", "n", "{}"),
+                    ("mode", "mode", "{}"),
+                    ("decisions", "decisions", "{}"),
+                    ("agree", "same corner", "{:.4f}"),
+                    ("agree_score", "same or tied score", "{:.4f}"),
+                    ("max_rel_error", "max error / band width", "{:.2g}"),
+                ],
+            )
+        )
+    for cost in costs:
+        print(f"\ncorner_search at n={cost['n']}: {cost['step_s']:.3g} s per end step (online)")
+    if args.plot:
+        plot(results, args.plot)
+        print(f"figure: {args.plot}")
+
+
+if __name__ == "__main__":
+    main()
