@@ -3,12 +3,7 @@
 Run: python notebooks/build_paper_reproduction.py   (needs nbformat, nbclient, ipykernel)
 """
 
-import pathlib
-
-import nbformat
-from nbclient import NotebookClient
-
-HERE = pathlib.Path(__file__).parent
+from _build import build
 
 CELLS = [
     (
@@ -170,22 +165,7 @@ for row in rows:
 
 
 def main():
-    nb = nbformat.v4.new_notebook()
-    for kind, text in CELLS:
-        new = nbformat.v4.new_markdown_cell if kind == "md" else nbformat.v4.new_code_cell
-        nb.cells.append(new(text))
-    nb.metadata["kernelspec"] = {
-        "name": "python3",
-        "display_name": "Python 3",
-        "language": "python",
-    }
-    client = NotebookClient(
-        nb, timeout=900, kernel_name="python3", resources={"metadata": {"path": str(HERE)}}
-    )
-    client.execute()
-    path = HERE / "paper_reproduction.ipynb"
-    nbformat.write(nb, path)
-    print(f"wrote {path}")
+    build(CELLS, "paper_reproduction.ipynb")
 
 
 if __name__ == "__main__":
