@@ -94,9 +94,10 @@ def build_case(name):
     if n <= 6:
         return case, rmijax.METHODS, {}, False
     methods = tuple(m for m in rmijax.SCALABLE_METHODS if not (big and m == "corner_search"))
-    options = {}
+    # small batches: a batch's flip loop runs until its slowest track converges
+    options = {"options": {"corner_search": {"chunk_size": 8}}}
     if big:
-        options = dict(
+        options.update(
             onsets=(1.5, 3.0),
             draws=200,
             times=[2.0, 3.9],
@@ -180,7 +181,9 @@ def plot(results, path):
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--cases", nargs="+", choices=CASES, default=list(CASES))
+    parser.add_argument(
+        "--cases", nargs="*", choices=CASES, default=list(CASES), help="none: agreement only"
+    )
     parser.add_argument(
         "--agreement",
         nargs="*",
@@ -199,15 +202,27 @@ def main(argv=None):
     parser.add_argument("--draws", type=int, default=1000, help="uniform Monte-Carlo draws")
     parser.add_argument("--json", help="write the results here")
     parser.add_argument("--plot", help="save the figure here (PNG)")
-    parser.add_argument("--from-json", help="print and plot an earlier --json file; run nothing")
+    parser.add_argument(
+        "--from-json",
+        nargs="+",
+        help="print and plot earlier --json files (merged; written to --json if given); "
+        "run nothing",
+    )
     args = parser.parse_args(argv)
 
     def log(message):
         print(message, flush=True)
 
     if args.from_json:
-        records, meta = read_json(args.from_json)
-        results, agreement, costs = records["cases"], records["agreement"], records["step_costs"]
+        results, agreement, costs, commands = [], [], [], []
+        for path in args.from_json:
+            records, meta = read_json(path)
+            results += records["cases"]
+            agreement += records["agreement"]
+            costs += records["step_costs"]
+            commands.append(meta["command"])
+        meta = {**meta, "command": " && ".join(commands)}
+        write_json(args.json, {"cases": results, "agreement": agreement, "step_costs": costs}, meta)
     else:
         results, costs, agreement = [], [], []
         meta = {"device": device(), "command": " ".join(sys.argv), "dtype": "float64"}
@@ -226,9 +241,9 @@ def main(argv=None):
                 costs.append({"case": name, "n": case.params.n_joints, **cost})
                 log(f"  corner_search: {cost['step_s']:.3g} s per end step (online, compiled)")
             log(f"[{name}] done at {time.perf_counter() - started:.0f} s")
-        agreement = agreement_rows(args.agreement, log)
-        meta = {"device": device(), "command": " ".join(sys.argv), "dtype": "float64"}
-        write_json(args.json, {"cases": results, "agreement": agreement, "step_costs": costs}, meta)
+            save()  # a long run keeps what it has
+        agreement.extend(agreement_rows(args.agreement, log))
+        save()
     print(markdown_table(summary_rows(results), COLUMNS))
     if agreement:
         print()
