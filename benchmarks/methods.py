@@ -12,9 +12,9 @@ Cases (``--cases``, default all):
 - ``preset2``, ``preset4``, ``preset6``: ``preset_arm(n)`` on slow_sine / sine
   paths (10 s): every method;
 - ``preset8``, ``preset16``, ``preset32``: the methods that scale
-  (``rmijax.SCALABLE_METHODS``); at 16 and 32 links a shorter run (4 s, onsets
-  1.5 s and 3 s), 200 draws and a lighter worst-case search (two times, the
-  Monte-Carlo extremes as starts, 10 iterations), and ``corner_search`` timed
+  (``rmijax.SCALABLE_METHODS``); at 16 and 32 links a shorter run (4 s, one
+  onset at 2 s), 100 draws and a lighter worst-case search (one time, 3.9 s;
+  the Monte-Carlo extremes as starts, 10 iterations), and ``corner_search`` timed
   on single end steps only (``--corner-search-cost``; a whole run would take
   hours: 7 s per end step at 16 links, 5 min at 32).
 
@@ -98,9 +98,9 @@ def build_case(name):
     options = {"options": {"corner_search": {"chunk_size": 8}}}
     if big:
         options.update(
-            onsets=(1.5, 3.0),
-            draws=200,
-            times=[2.0, 3.9],
+            onsets=(2.0,),
+            draws=100,
+            times=[3.9],
             worst_options=dict(random_starts=0, iterations=10),
             max_worst_starts=4,
             timing_steps=20,
