@@ -88,8 +88,9 @@ for s, (ax, unit) in enumerate(zip(axes, ["encoder, rad", "tachometer, rad/s"]))
         ax.plot(t, lo, lw=1, color=line.get_color())
     ax.plot(t, np.asarray(x_true)[:, 1, s] - nominal[:, 1, s], "k", lw=1.5, label="true robot")
     ax.set_ylabel("joint 2 " + unit + "\\n(minus nominal)")
-    reach = np.abs(np.asarray(x_true)[:, 1, s] - nominal[:, 1, s]).max()
-    ax.set_ylim(-3 * reach, 3 * reach)
+    corners = bands["constant_corners"]  # the tightest band sets the scale
+    reach = np.abs(np.asarray(corners.upper)[:, 1, s] - nominal[:, 1, s]).max()
+    ax.set_ylim(-2.5 * reach, 2.5 * reach)
 axes[0].legend(ncol=4, fontsize=8)
 axes[1].set_xlabel("t, s");""",
     ),

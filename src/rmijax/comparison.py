@@ -24,6 +24,7 @@ import jax
 import numpy as np
 
 from rmijax.detect import containment, detect, monte_carlo_parameters
+from rmijax.engine import DivergedError
 from rmijax.experiments import default_fault_suite
 from rmijax.methods import bounds
 from rmijax.params import UncertainRobot
@@ -221,7 +222,9 @@ def compare(
 
     Returns:
         ``{"case", "n", "K", "T", "dt", "methods": {name: {...}}, "worst_case": {...},
-        "faults": [...]}``; ``methods[name]`` has ``seconds_per_step``,
+        "faults": [...], "diverged": {name: message}}`` (a method that raised
+        :class:`~rmijax.engine.DivergedError` is reported there and not scored);
+        ``methods[name]`` has ``seconds_per_step``,
         ``width_over_worst`` (per sensor: median, min, max of band width over
         worst-case range), ``worst_points_inside``, ``containment`` (``inside``,
         ``clean_runs``, ``worst``, ``runs``), ``detected``, ``median_latency``,
@@ -245,16 +248,24 @@ def compare(
     }
 
     log(f"[{case.name}] bands")
-    bands, cost = {}, {}
+    bands, cost, diverged = {}, {}, {}
     for method in methods:
         started = time.perf_counter()
-        bands[method], cost[method] = _timed_bounds(
-            case, method, y_free, options.get(method, {}), timing_steps
-        )
+        try:
+            bands[method], cost[method] = _timed_bounds(
+                case, method, y_free, options.get(method, {}), timing_steps
+            )
+        except DivergedError as err:  # the method refuses this case: say so, score the rest
+            diverged[method] = str(err)
+            log(f"  {method}: diverged ({err})")
+            continue
         log(
             f"  {method}: {cost[method] * 1e3:.3f} ms per end step "
             f"({time.perf_counter() - started:.1f} s with the timing)"
         )
+
+    methods = [m for m in methods if m not in diverged]
+    result["diverged"] = diverged
 
     log(f"[{case.name}] Monte-Carlo containment")
     th = monte_carlo_parameters(params, draws, seed=seed, corners=params.n_corners <= _CORNER_LIMIT)
