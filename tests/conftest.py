@@ -4,6 +4,7 @@ The library itself never switches x64 on; the tests choose it here and pass
 float32 explicitly where float32 is under test.
 """
 
+import gc
 import pathlib
 
 import jax
@@ -14,6 +15,20 @@ jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
 
 DATA = pathlib.Path(__file__).parent / "data"
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _release_compiled_programs():
+    """Drop every compiled program after each test module.
+
+    The suite compiles thousands of XLA programs in one process; each keeps its own
+    memory mappings, and near the kernel's ``vm.max_map_count`` (65530 here) the next
+    compilation crashed with SIGSEGV inside XLA. Clearing JAX's caches per module keeps
+    the process far below that limit.
+    """
+    yield
+    jax.clear_caches()
+    gc.collect()
 
 
 @pytest.fixture
