@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 
 import rmijax
-from rmijax import worst_case as wc
 from rmijax.worst_case import WorstCase, forget_steps, worst_case, worst_case_table
 
 
@@ -156,4 +155,3 @@ def test_bad_input_is_refused(pendulum):
         worst_case_table(traj, params, [])
     with pytest.raises(ValueError, match="2 joints but params describes a 1-joint"):
         worst_case(rmijax.trajectory(["hold", "sine"], duration=1.0), params, (0, 0), 0.5)
-    assert wc.MAX_CORNER_PARAMS == 6

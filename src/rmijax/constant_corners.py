@@ -32,7 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from rmijax import _checks
-from rmijax.engine import Bounds, DivergedError
+from rmijax.engine import Bounds, DivergedError, check_types
 from rmijax.params import UncertainRobot
 from rmijax.simulate import (
     _NEVER,
@@ -185,16 +185,7 @@ def _envelope_with_progress(traj, params, tables, *, horizon, size, n_chunks, wi
 
 
 def _validate(traj, params, horizon, window, noise_lo, noise_hi, chunk_size):
-    if not isinstance(traj, Trajectory):
-        raise TypeError(
-            f"traj must be a rmijax.Trajectory (from rmijax.trajectory or "
-            f"rmijax.trajectory_from_samples), got {type(traj).__name__}"
-        )
-    if not isinstance(params, UncertainRobot):
-        raise TypeError(
-            f"params must be a rmijax.UncertainRobot (from rmijax.planar_arm, "
-            f"rmijax.preset_arm, ...), got {type(params).__name__}"
-        )
+    check_types(traj, params)
     if horizon not in HORIZONS:
         raise ValueError(f"unknown horizon {horizon!r}; choose one of {HORIZONS}")
     window = _checks.positive_int("window", window, "steps")

@@ -97,7 +97,8 @@ class Bounds:
 # --------------------------------------------------------------------------
 
 
-def _validate(traj, params, mode, window, noise_lo, noise_hi, search="auto"):
+def check_types(traj, params):
+    """Refuse a ``traj`` that is not a Trajectory or ``params`` not an UncertainRobot."""
     if not isinstance(traj, Trajectory):
         raise TypeError(
             f"traj must be a rmijax.Trajectory (from rmijax.trajectory or "
@@ -108,6 +109,10 @@ def _validate(traj, params, mode, window, noise_lo, noise_hi, search="auto"):
             f"params must be a rmijax.UncertainRobot (from rmijax.planar_arm, "
             f"rmijax.preset_arm, ...), got {type(params).__name__}"
         )
+
+
+def _validate(traj, params, mode, window, noise_lo, noise_hi, search="auto"):
+    check_types(traj, params)
     if mode not in MODES:
         raise ValueError(f"unknown mode {mode!r}; choose one of {MODES}")
     check_search(search, params.model)

@@ -41,6 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from rmijax import _checks
+from rmijax.engine import check_types
 from rmijax.linearized import differentiable_model, window_output
 from rmijax.params import UncertainRobot
 from rmijax.simulate import simulate
@@ -158,10 +159,7 @@ def _search(traj, params, starts, steps, joints, sensors, signs, *, window, iter
 
 
 def _validate(traj, params):
-    if not isinstance(traj, Trajectory):
-        raise TypeError(f"traj must be a rmijax.Trajectory, got {type(traj).__name__}")
-    if not isinstance(params, UncertainRobot):
-        raise TypeError(f"params must be a rmijax.UncertainRobot, got {type(params).__name__}")
+    check_types(traj, params)
     if params.n_joints != traj.n_joints:
         raise ValueError(
             f"traj has {traj.n_joints} joints but params describes a "
