@@ -52,6 +52,19 @@ def check_finite(name, array):
         )
 
 
+def first_non_finite(*arrays):
+    """Index of the first NaN/inf entry over same-shaped concrete ``arrays``, else None.
+
+    None too when any array is a tracer (nothing to inspect under ``jit``).
+    """
+    if not all(is_concrete(a) for a in arrays):
+        return None
+    finite = np.logical_and.reduce([np.isfinite(np.asarray(a)) for a in arrays])
+    if finite.all():
+        return None
+    return tuple(int(i) for i in np.argwhere(~finite)[0])
+
+
 def per_joint(name, value, n, dtype):
     """A scalar or ``(n,)`` gain as an ``(n,)`` array."""
     array = jnp.asarray(value, dtype=dtype)

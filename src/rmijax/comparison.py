@@ -214,7 +214,8 @@ def compare(
         worst_options: passed to :func:`rmijax.worst_case_table`.
         max_worst_starts: the Monte-Carlo runs' extreme parameter rows at
             ``times`` (the constant-corner envelope's corners among them) start
-            the worst-case search, the most frequent first, up to this many.
+            the worst-case search: the first this many distinct rows found
+            (in the order of the runs, so corners before uniform draws).
         timing_steps: the cost is timed on the first this many steps.
         seed: seeds the draws.
         chunk: Monte-Carlo runs simulated at once.
@@ -237,7 +238,7 @@ def compare(
     if times is None:
         times = np.round(np.linspace(0.1 * duration, 0.95 * duration, 8) / traj.dt) * traj.dt
     steps = np.rint(np.asarray(times) / traj.dt).astype(int)
-    x_free, y_free = simulate(traj, params, case.th_true)
+    _, y_free = simulate(traj, params, case.th_true)
     result = {
         "case": case.name,
         "n": n,

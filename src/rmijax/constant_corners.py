@@ -29,7 +29,6 @@ import math
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from rmijax import _checks
 from rmijax.engine import Bounds, DivergedError, check_types
@@ -226,11 +225,9 @@ def _chunking(traj, params, horizon, chunk_size, itemsize):
 
 
 def _check_finite_envelope(low, high, dt):
-    if not (_checks.is_concrete(low) and _checks.is_concrete(high)):
-        return
-    finite = np.isfinite(np.asarray(low)) & np.isfinite(np.asarray(high))
-    if not finite.all():
-        step, joint, sensor = (int(v) for v in np.argwhere(~finite)[0])
+    where = _checks.first_non_finite(low, high)
+    if where is not None:
+        step, joint, sensor = where
         raise DivergedError(
             f"a constant-corner run diverged (|state| > {DIVERGENCE_LIMIT:g} or non-finite) "
             f"by step {step} (t = {step * dt:.2f} s, joint {joint} "

@@ -533,9 +533,8 @@ def _check_result(bounds):
     """Refuse non-finite bounds (a diverged window); warn about crossed ones."""
     if not _checks.is_concrete(bounds.upper):
         return
-    finite = np.isfinite(np.asarray(bounds.upper)) & np.isfinite(np.asarray(bounds.lower))
-    if not finite.all():
-        where = tuple(int(i) for i in np.argwhere(~finite)[0])
+    where = _checks.first_non_finite(bounds.upper, bounds.lower)
+    if where is not None:
         sensor = "encoder" if where[-1] == 0 else "tachometer"
         at = f"end step {where[0]}, " if len(where) == 3 else ""
         raise DivergedError(

@@ -229,11 +229,9 @@ def _batch(params, margin, dtype, n_end, chunk_size):
 
 
 def _check_finite(bounds):
-    if not _checks.is_concrete(bounds.upper):
-        return
-    finite = np.isfinite(np.asarray(bounds.upper)) & np.isfinite(np.asarray(bounds.lower))
-    if not finite.all():
-        step, joint, sensor = (int(i) for i in np.argwhere(~finite)[0])
+    where = _checks.first_non_finite(bounds.upper, bounds.lower)
+    if where is not None:
+        step, joint, sensor = where
         raise engine.DivergedError(
             f"linearized bounds are not finite (end step {step}, joint {joint} "
             f"{('encoder', 'tachometer')[sensor]}): the constant-parameter window diverged. "
