@@ -227,3 +227,14 @@ def test_bad_input_is_refused():
         linearized_bounds(traj, rmijax.paper_pendulum())
     with pytest.raises(TypeError, match="params must be a rmijax.UncertainRobot"):
         linearized_bounds(traj, params.nominal)
+
+
+def test_diverging_window_is_refused():
+    """A mass box down to 0.1% of the nominal makes the loop's effective gains 1000x:
+    the windows overflow, and the method says so instead of returning NaN."""
+    params = rmijax.planar_arm([10.0, 1.0], [0.01, 0.99], [11.0, 1.01])
+    traj = rmijax.trajectory(["sine"], duration=1.5)
+    with pytest.raises(
+        rmijax.DivergedError, match=r"linearized bounds are not finite \(end step \d+, joint 0"
+    ):
+        linearized_bounds(traj, params)
