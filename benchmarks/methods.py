@@ -46,9 +46,9 @@ sys.path.insert(0, str(pathlib.Path(__file__).parent))
 from _common import device, markdown_table, read_json, write_json  # noqa: E402
 
 import rmijax  # noqa: E402
-from rmijax.comparison import Case, compare, step_cost, summary_rows  # noqa: E402
-from rmijax.corner_search import corner_agreement, search_robot  # noqa: E402
-from rmijax.experiments import paper_run, paper_true_parameters  # noqa: E402
+from rmijax.apps.experiments import paper_run, paper_true_parameters  # noqa: E402
+from rmijax.evaluation.comparison import Case, compare, step_cost, summary_rows  # noqa: E402
+from rmijax.methods.corner_search import corner_agreement, search_robot  # noqa: E402
 
 PAPER_CASES = (
     "arm2_hold_sine",

@@ -48,7 +48,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 from IPython.display import Markdown, display
 import rmijax
-from rmijax.comparison import summary_rows
+from rmijax.evaluation.comparison import summary_rows
 
 sys.path.insert(0, str(pathlib.Path("..", "benchmarks").resolve()))
 from methods import COLUMNS

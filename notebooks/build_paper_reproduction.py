@@ -23,8 +23,8 @@ jax.config.update("jax_enable_x64", True)   # the notebook's choice; rmijax neve
 %matplotlib inline
 import numpy as np
 import rmijax
-from rmijax import experiments as ex
-from rmijax.plotting import plot_bands, plot_comparison""",
+from rmijax.apps import experiments as ex
+from rmijax.apps.plotting import plot_bands, plot_comparison"""
     ),
     (
         "md",

@@ -4,75 +4,75 @@ Importing rmijax changes no JAX configuration: choose float64 yourself with
 ``jax.config.update("jax_enable_x64", True)`` (or pass float64 arrays).
 """
 
-from rmijax import experiments as experiments
+from rmijax.apps import experiments as experiments
 from rmijax.control import (
     closed_loop_step as closed_loop_step,
     coupled_perturbation as coupled_perturbation,
 )
-from rmijax.detect import (
+from rmijax.detection.detect import (
     Detection as Detection,
     containment as containment,
     detect as detect,
-    empirical_thresholds as empirical_thresholds,
-    monte_carlo_parameters as monte_carlo_parameters,
 )
-from rmijax.engine import (
-    DEFAULT_MEMORY_BUDGET as DEFAULT_MEMORY_BUDGET,
-    MODES as MODES,
-    SEARCHES as SEARCHES,
-    Bounds as Bounds,
-    DivergedError as DivergedError,
-    ProblemTooLargeError as ProblemTooLargeError,
-    estimate_memory as estimate_memory,
-    rmi as rmi,
-    rmi_step as rmi_step,
-)
-from rmijax.methods import (
-    DEFAULT_WINDOWS as DEFAULT_WINDOWS,
-    METHODS as METHODS,
-    SCALABLE_METHODS as SCALABLE_METHODS,
-    bounds as bounds,
-)
-from rmijax.model import (
-    GRAVITY as GRAVITY,
-    RobotModel as RobotModel,
-    planar_arm_model as planar_arm_model,
-)
-from rmijax.monitor import (
+from rmijax.detection.monitor import (
     Monitor as Monitor,
     MonitorOutput as MonitorOutput,
     MonitorState as MonitorState,
     monitor as monitor,
 )
-from rmijax.params import (
+from rmijax.evaluation.worst_case import (
+    WorstCase as WorstCase,
+    worst_case as worst_case,
+    worst_case_table as worst_case_table,
+)
+from rmijax.methods.base import (
+    Bounds as Bounds,
+    DivergedError as DivergedError,
+    ProblemTooLargeError as ProblemTooLargeError,
+)
+from rmijax.methods.dispatch import (
+    DEFAULT_WINDOWS as DEFAULT_WINDOWS,
+    METHODS as METHODS,
+    SCALABLE_METHODS as SCALABLE_METHODS,
+    bounds as bounds,
+)
+from rmijax.methods.empirical import empirical_thresholds as empirical_thresholds
+from rmijax.methods.rmi import (
+    DEFAULT_MEMORY_BUDGET as DEFAULT_MEMORY_BUDGET,
+    MODES as MODES,
+    SEARCHES as SEARCHES,
+    estimate_memory as estimate_memory,
+    rmi as rmi,
+    rmi_step as rmi_step,
+)
+from rmijax.plant import FAULT_KINDS as FAULT_KINDS, Fault as Fault, simulate as simulate
+from rmijax.robots.box import (
     UncertainRobot as UncertainRobot,
     corner_tensor as corner_tensor,
+    monte_carlo_parameters as monte_carlo_parameters,
+    uncertain_robot as uncertain_robot,
+)
+from rmijax.robots.model import GRAVITY as GRAVITY, RobotModel as RobotModel
+from rmijax.robots.planar import (
     paper_arm2 as paper_arm2,
     paper_pendulum as paper_pendulum,
     planar_arm as planar_arm,
+    planar_arm_model as planar_arm_model,
     preset_arm as preset_arm,
-    uncertain_robot as uncertain_robot,
 )
-from rmijax.simulate import (
-    FAULT_KINDS as FAULT_KINDS,
-    Fault as Fault,
-    simulate as simulate,
-)
+from rmijax.robots.structure import AffineBias as AffineBias, LinearDynamics as LinearDynamics
 from rmijax.trajectory import (
     PATHS as PATHS,
     Trajectory as Trajectory,
     trajectory as trajectory,
     trajectory_from_samples as trajectory_from_samples,
 )
-from rmijax.worst_case import (
-    WorstCase as WorstCase,
-    worst_case as worst_case,
-    worst_case_table as worst_case_table,
-)
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "AffineBias",
+    "LinearDynamics",
     "DEFAULT_MEMORY_BUDGET",
     "DEFAULT_WINDOWS",
     "FAULT_KINDS",

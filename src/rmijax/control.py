@@ -37,7 +37,7 @@ def coupled_perturbation(model, th, nominal, q, qd, u_d, kp, kd):
     """``gv = M(q; th)^-1 (tau - h(q, qd; th)) - v`` for the measured state ``(q, qd)``.
 
     Args:
-        model: the :class:`~rmijax.model.RobotModel`.
+        model: the :class:`~rmijax.robots.model.RobotModel`.
         th: true parameters (p,).
         nominal: the controller's parameters ``th_n`` (p,).
         q, qd: joint positions (rad) and velocities (rad/s), (n,).

@@ -1,0 +1,7 @@
+"""Robots: the model interface, the parameter box and its corners, and the arms.
+
+- :mod:`~rmijax.robots.model`: :class:`RobotModel`, ``M(q, th)`` and ``h(q, qd, th)``.
+- :mod:`~rmijax.robots.structure`: what a model declares about its parameters.
+- :mod:`~rmijax.robots.box`: :class:`UncertainRobot`, the box ``[lo, hi]`` and its corners.
+- :mod:`~rmijax.robots.planar`: the paper's planar point-mass arm and its presets.
+"""

@@ -1,0 +1,78 @@
+"""Robot models: a rigid arm as a pair of pure JAX functions of a parameter vector.
+
+RMI needs nothing from a robot but its mass matrix ``M(q, th)`` and bias forces
+``h(q, qd, th)`` (SPEC section 1), so :class:`RobotModel` holds exactly that
+pair, plus an optional fast forward-dynamics routine and a declaration of its
+structure (:mod:`rmijax.robots.structure`). The planar point-mass arm
+of the paper is one such model (:mod:`rmijax.robots.planar`); any other robot is
+brought by writing its two functions.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+
+__all__ = ["GRAVITY", "RobotModel"]
+
+GRAVITY = 9.81
+"""Gravitational acceleration in m/s^2, along ``-y``."""
+
+
+@dataclasses.dataclass(frozen=True)
+class RobotModel:
+    """A rigid robot described by pure JAX functions of a parameter vector.
+
+    Every function takes single (unbatched) arguments; the RMI engine `vmap`s
+    them over parameter corners and tracks. They must be traceable by JAX and
+    must not close over arrays that change between calls (they are static).
+
+    Attributes:
+        n_joints: number of joints ``n``.
+        n_params: length ``p`` of the parameter vector ``th``.
+        mass_matrix: ``(q (n,), th (p,)) -> M (n, n)``, symmetric positive
+            definite, in kg m^2 (revolute) or kg (prismatic).
+        bias: ``(q (n,), qd (n,), th (p,)) -> h (n,)``: Coriolis, centrifugal
+            and gravity forces in N m (or N), so ``M qdd + h = tau``.
+        forward_dynamics: optional ``(q, qd, tau, th) -> qdd (n,)``. It must
+            equal ``solve(M, tau - h)``; give one when a closed form is faster
+            than a general linear solve.
+        name: a label for reports.
+        param_names: one label per parameter, for reports.
+        structure: an optional declaration of how the parameters enter the
+            dynamics (:mod:`rmijax.robots.structure`); exact RMI takes a
+            faster search from it. None: every corner is evaluated.
+    """
+
+    n_joints: int
+    n_params: int
+    mass_matrix: Callable[[jax.Array, jax.Array], jax.Array]
+    bias: Callable[[jax.Array, jax.Array, jax.Array], jax.Array]
+    forward_dynamics: Callable[..., jax.Array] | None = None
+    name: str = "robot"
+    param_names: tuple[str, ...] = ()
+    structure: object = None
+
+    def __post_init__(self):
+        if int(self.n_joints) < 1:
+            raise ValueError(f"n_joints must be >= 1, got {self.n_joints}")
+        if int(self.n_params) < 0:
+            raise ValueError(f"n_params must be >= 0, got {self.n_params}")
+        if self.param_names and len(self.param_names) != self.n_params:
+            raise ValueError(
+                f"param_names has {len(self.param_names)} entries but n_params is "
+                f"{self.n_params}: give one name per parameter or none"
+            )
+
+    def accelerations(self, q, qd, tau, th):
+        """Joint accelerations ``qdd = M(q; th)^-1 (tau - h(q, qd; th))``, shape ``(n,)``."""
+        if self.forward_dynamics is not None:
+            return self.forward_dynamics(q, qd, tau, th)
+        return jnp.linalg.solve(self.mass_matrix(q, th), tau - self.bias(q, qd, th))
+
+    def torques(self, q, qd, qdd, th):
+        """Inverse dynamics ``tau = M(q; th) qdd + h(q, qd; th)``, shape ``(n,)``."""
+        return self.mass_matrix(q, th) @ qdd + self.bias(q, qd, th)
