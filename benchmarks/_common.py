@@ -66,7 +66,8 @@ def run_meta(script, argv=None, *, dtype):
 
     ``command`` is the exact command line that wrote the file (run from the repository
     root); ``commit`` the git HEAD of the code that ran, with ``+dirty`` when the work
-    tree had uncommitted changes to tracked files.
+    tree had uncommitted changes to tracked files; ``load_avg`` the machine's load when
+    the run ended.
     """
     import jax
 
@@ -94,6 +95,9 @@ def run_meta(script, argv=None, *, dtype):
         "machine": _machine(),
         "dtype": dtype,
         "jax": jax.__version__,
+        # 1, 5 and 15 min load averages when the run ended: on a shared machine a
+        # load above the core count means other jobs took time from the timed one.
+        "load_avg": [round(x, 2) for x in os.getloadavg()],
     }
 
 
