@@ -90,7 +90,7 @@ def run_meta(script, argv=None, *, dtype):
     return {
         "command": " ".join(["python", script] + [shlex.quote(a) for a in argv]),
         "commit": commit,
-        "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "device": device(),
         "machine": _machine(),
         "dtype": dtype,
