@@ -1,4 +1,6 @@
-"""No module imports one above it: robot <- closed loop <- methods <- detection <- evaluation <- apps.
+"""No module imports one above it.
+
+robot <- closed loop <- methods <- detection <- evaluation <- apps.
 
 The layers are read from the folders; every ``import`` and ``from ... import``
 in every module (function-level ones too) is checked.

@@ -138,7 +138,9 @@ def test_structured_pick_equals_pick_corner_on_random_scores(rng):
             e = sum(bits[b] << k for k, b in enumerate(enumerated))
             scores[c] = base[e] + sum(span[e, j] * bits[b] for j, b in enumerate(affine))
         want = int(pick_corner(jnp.asarray(scores), offset))
-        e, a_bits = structured_pick(jnp.asarray(base), jnp.asarray(span), offset, enumerated, affine)
+        e, a_bits = structured_pick(
+            jnp.asarray(base), jnp.asarray(span), offset, enumerated, affine
+        )
         bits = [0] * 6
         for k, b in enumerate(enumerated):
             bits[b] = (int(e) >> k) & 1
