@@ -14,6 +14,7 @@ import pytest
 
 import rmijax
 from rmijax.methods.choosers import (
+    LinearChooser,
     StructuredChooser,
     enumerate_corners,
     pick_corner,
@@ -50,7 +51,19 @@ def _bias(q, qd, th, counter=None):
     return planar_bias(q, qd, _planar(th)) + friction
 
 
-def friction_arm(structure=True, counter=None):
+def _terms(q, qd):
+    """The friction arm is affine in every parameter (masses with the lengths fixed)."""
+    zero = jnp.zeros(6, q.dtype)
+    m_terms = jnp.moveaxis(jax.jacfwd(_mass, argnums=1)(q, zero), -1, 0)
+    h_terms = jnp.moveaxis(jax.jacfwd(_bias, argnums=2)(q, qd, zero), -1, 0)
+    return _mass(q, zero), m_terms, _bias(q, qd, zero), h_terms
+
+
+def friction_arm(structure=True, counter=None, linear=False):
+    if linear:
+        declared = rmijax.LinearDynamics(affine=AFFINE, terms=_terms)
+    else:
+        declared = rmijax.AffineBias(affine=AFFINE) if structure else None
     model = rmijax.RobotModel(
         n_joints=2,
         n_params=6,
@@ -58,7 +71,7 @@ def friction_arm(structure=True, counter=None):
         bias=lambda q, qd, th: _bias(q, qd, th, counter),
         name="arm2_friction",
         param_names=("b1", "m1", "b2", "c1", "m2", "c2"),
-        structure=rmijax.AffineBias(affine=AFFINE) if structure else None,
+        structure=declared,
     )
     nominal = np.array([0.5, 12.0, 0.4, 0.3, 10.0, 0.2])
     lo = np.array([0.0, 11.0, 0.0, 0.0, 9.0, 0.0])
@@ -66,10 +79,11 @@ def friction_arm(structure=True, counter=None):
     return rmijax.uncertain_robot(model, nominal, lo, hi)
 
 
+@pytest.mark.parametrize("linear", [False, True], ids=["affine_bias", "linear_dynamics"])
 @pytest.mark.parametrize("mode", ["coupled", "per_joint"])
 @pytest.mark.parametrize("paths", [["hold", "sine"], ["slow_sine", "composite"]])
-def test_affine_structure_equals_enumeration(mode, paths):
-    params = friction_arm()
+def test_affine_structure_equals_enumeration(mode, paths, linear):
+    params = friction_arm(linear=linear)
     traj = rmijax.trajectory(paths, duration=0.6)
     structured = rmijax.rmi(traj, params, mode=mode, window=25)
     enumerated = rmijax.rmi(traj, params, mode=mode, window=25, search="enumerate")
@@ -111,6 +125,7 @@ def test_resolve_follows_the_declaration():
     assert resolve(arm.model, "auto") is SEARCH
     assert resolve(arm.model, "enumerate") is enumerate_corners
     assert isinstance(resolve(friction_arm().model, "auto"), StructuredChooser)
+    assert isinstance(resolve(friction_arm(linear=True).model, "auto"), LinearChooser)
     assert resolve(friction_arm(structure=False).model, "auto") is enumerate_corners
     bad = rmijax.RobotModel(2, 2, _mass, _bias, structure=rmijax.AffineBias(affine=(5,)))
     with pytest.raises(ValueError, match="affine parameter index 5"):
