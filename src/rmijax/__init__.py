@@ -66,6 +66,7 @@ from rmijax.trajectory import (
     Trajectory as Trajectory,
     trajectory as trajectory,
     trajectory_from_samples as trajectory_from_samples,
+    waypoint_trajectory as waypoint_trajectory,
 )
 
 __version__ = "0.1.0"
@@ -116,6 +117,7 @@ __all__ = [
     "trajectory",
     "trajectory_from_samples",
     "uncertain_robot",
+    "waypoint_trajectory",
     "worst_case",
     "worst_case_table",
 ]
