@@ -228,15 +228,23 @@ class LinearChooser(StructuredChooser):
 
     def coupled(self, q, qd, tau, v, onehot, weight, offset, consts):
         corners = self._corners(consts)  # (E, p)
+        enum, affine = np.asarray(self.enumerated, int), np.asarray(self.affine, int)
         m0, m_terms, h0, h_terms = self.terms(q, qd)
         n = q.shape[0]
-        mass = m0[None] + jnp.einsum("ep,pij->eij", corners, m_terms)  # (E, n, n)
-        bias = h0[None] + corners @ h_terms  # (E, n)
-        lower, _, inv_diag = ldl_factor([[mass[:, a, b] for b in range(a + 1)] for a in range(n)])
-        rhs = [jnp.broadcast_to(onehot[a], mass.shape[:1]) for a in range(n)]
+        rows, cols = np.tril_indices(n)
+        # only the enumerated parameters enter M; the affine ones sit at lo in every corner
+        lower_terms = m_terms[enum][:, rows, cols]  # (p_e, n(n+1)/2)
+        packed = m0[rows, cols][None, :] + corners[:, enum] @ lower_terms  # (E, n(n+1)/2)
+        index = {(a, b): k for k, (a, b) in enumerate(zip(rows, cols, strict=True))}
+        lower, _, inv_diag = ldl_factor(
+            [[packed[:, index[a, b]] for b in range(a + 1)] for a in range(n)]
+        )
+        rhs = [jnp.broadcast_to(onehot[a], packed.shape[:1]) for a in range(n)]
         row = jnp.stack(ldl_solve(lower, inv_diag, rhs), axis=-1)  # (E, n): M^-1 e_i
-        base = weight * (jnp.sum(row * (tau[None] - bias), axis=-1) - jnp.dot(onehot, v))
-        affine = np.asarray(self.affine, int)
+        bias = (h0 + consts["lo"][affine] @ h_terms[affine])[None, :] + corners[:, enum] @ h_terms[
+            enum
+        ]
+        base = weight * (jnp.sum(row * (tau[None, :] - bias), axis=-1) - jnp.dot(onehot, v))
         coef = -weight * (row @ h_terms[affine].T)  # (E, a)
         span = coef * (consts["hi"][affine] - consts["lo"][affine])[None, :]
         e, a_bits = structured_pick(base, span, offset, self.enumerated, self.affine)
