@@ -7,14 +7,10 @@ import pytest
 from arm2_urdf import arm2_urdf
 
 from rmijax.robots.loaders import SHIPPED, _resolve, load_chain, load_robot
+from rmijax.robots.planar import planar_arm_model
 from rmijax.robots.spatial import COULOMB_VELOCITY, Payload, smooth_sign, spatial_dynamics
 
 pin = pytest.importorskip("pinocchio")
-
-try:
-    from rmijax.robots.planar import planar_arm_model
-except ImportError:  # before the layout change
-    from rmijax.model import planar_arm_model
 
 N_STATES = 100
 FRICTION = dict(viscous=(0.0, 2.0), coulomb=(0.0, 1.5))

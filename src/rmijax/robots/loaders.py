@@ -33,17 +33,10 @@ import xml.etree.ElementTree as ET
 
 import numpy as np
 
+from rmijax.robots.box import UncertainRobot, uncertain_robot
+from rmijax.robots.model import RobotModel
 from rmijax.robots.spatial import Chain, Payload, spatial_dynamics
-
-try:  # the package layout after the "Layout:" reorganisation
-    from rmijax.robots.box import UncertainRobot, uncertain_robot
-    from rmijax.robots.model import RobotModel
-    from rmijax.robots.structure import LinearDynamics
-except ImportError:  # pragma: no cover - the layout before it
-    from rmijax.model import RobotModel
-    from rmijax.params import UncertainRobot, uncertain_robot
-
-    LinearDynamics = None
+from rmijax.robots.structure import LinearDynamics
 
 __all__ = ["SHIPPED", "load_chain", "load_robot"]
 
@@ -724,9 +717,6 @@ def load_robot(source, *, mass=0.0, payload=None, payload_link=None, payload_off
             nominal.append(0.5 * (f_lo + f_hi))
 
     dynamics = spatial_dynamics(chain, payload=payload_spec, friction=kinds)
-    extra = {}
-    if LinearDynamics is not None:
-        extra["structure"] = LinearDynamics(affine=dynamics.affine, terms=dynamics.terms)
     model = RobotModel(
         n_joints=n,
         n_params=len(dynamics.param_names),
@@ -735,7 +725,7 @@ def load_robot(source, *, mass=0.0, payload=None, payload_link=None, payload_off
         forward_dynamics=dynamics.forward_dynamics,
         name=chain.name,
         param_names=dynamics.param_names,
-        **extra,
+        structure=LinearDynamics(affine=dynamics.affine, terms=dynamics.terms),
     )
     return uncertain_robot(model, np.concatenate(nominal), np.concatenate(lo),
                            np.concatenate(hi), dtype=dtype)

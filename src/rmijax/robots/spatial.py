@@ -34,6 +34,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.scipy.linalg import cho_factor, cho_solve
 
+from rmijax.robots.model import GRAVITY as _GRAVITY
+
 __all__ = [
     "COULOMB_VELOCITY",
     "GRAVITY",
@@ -44,7 +46,7 @@ __all__ = [
     "spatial_dynamics",
 ]
 
-GRAVITY = 9.81
+GRAVITY = _GRAVITY
 """Gravitational acceleration in m/s^2, along ``-z`` of the base frame."""
 
 COULOMB_VELOCITY = 0.01
