@@ -141,7 +141,8 @@ def _floats(element, attribute, default, label, where, size=3):
     try:
         values = np.array([float(v) for v in text.split()])
     except ValueError:
-        raise ValueError(f"{label}: {where} {attribute}={text!r} is not a list of numbers") from None
+        raise ValueError(
+            f"{label}: {where} {attribute}={text!r} is not a list of numbers") from None
     if values.size != size:
         raise ValueError(f"{label}: {where} {attribute}={text!r} needs {size} numbers")
     return values
@@ -665,8 +666,8 @@ def load_robot(source, *, mass=0.0, payload=None, payload_link=None, payload_off
                          f"{list(chain.body_names)}); got shape {np.shape(mass)}")
     for body, r in zip(chain.body_names, ratios, strict=True):
         if not (0 <= r < 1):
-            raise ValueError(f"mass={r!r} for body {body!r}: the relative mass uncertainty r "
-                             "must satisfy 0 <= r < 1 (scales lie in [1 - r, 1 + r])")
+            raise ValueError(f"mass={float(r)!r} for body {body!r}: the relative mass "
+                             "uncertainty r must satisfy 0 <= r < 1 (scales lie in [1 - r, 1 + r])")
     lo, hi, nominal = [1 - ratios], [1 + ratios], [np.ones(n)]
 
     payload_spec = None
