@@ -51,8 +51,9 @@ def _compiled(fn, args):
 
 def measure(name, batch, calls, seed=0):
     """Compile times and throughput of one arm, as a record."""
-    robot = load_robot(name, mass=0.2, payload=(0.0, 3.0),
-                       friction=dict(viscous=(0.0, 1.0), coulomb=(0.0, 1.0)))
+    robot = load_robot(
+        name, mass=0.2, payload=(0.0, 3.0), friction=dict(viscous=(0.0, 1.0), coulomb=(0.0, 1.0))
+    )
     model, n = robot.model, robot.n_joints
     rng = np.random.default_rng(seed)
     q = rng.uniform(-np.pi, np.pi, (batch, n))
@@ -66,11 +67,16 @@ def measure(name, batch, calls, seed=0):
     terms_compile_s = _compiled(terms, (q, qd))
     terms_timing = time_calls(terms, lambda i: (q, qd), calls=calls)
     return dict(
-        robot=name, n_joints=n, n_params=robot.n_params, batch=batch,
-        compile_s=compile_s, pairs_per_s=batch / timing["p50_s"],
+        robot=name,
+        n_joints=n,
+        n_params=robot.n_params,
+        batch=batch,
+        compile_s=compile_s,
+        pairs_per_s=batch / timing["p50_s"],
         p50_us_per_pair=1e6 * timing["p50_s"] / batch,
         p99_us_per_pair=1e6 * timing["p99_s"] / batch,
-        terms_compile_s=terms_compile_s, terms_per_s=batch / terms_timing["p50_s"],
+        terms_compile_s=terms_compile_s,
+        terms_per_s=batch / terms_timing["p50_s"],
         terms_p99_us_per_state=1e6 * terms_timing["p99_s"] / batch,
     )
 
@@ -84,8 +90,17 @@ def main(argv=None):
     args = parser.parse_args(argv)
     records = [measure(name, args.batch, args.calls) for name in args.robots]
     print(table(records, COLUMNS))
-    write_json(args.json, records, dict(device=device(), dtype="float64", batch=args.batch,
-                                        calls=args.calls, jax=jax.__version__))
+    write_json(
+        args.json,
+        records,
+        dict(
+            device=device(),
+            dtype="float64",
+            batch=args.batch,
+            calls=args.calls,
+            jax=jax.__version__,
+        ),
+    )
     return records
 
 

@@ -108,8 +108,9 @@ def _assert_same_chain(first, second):
     assert first.body_names == second.body_names
     assert first.joint_types == second.joint_types
     for field in CHAIN_FIELDS:
-        np.testing.assert_allclose(getattr(first, field), getattr(second, field),
-                                   rtol=1e-12, atol=1e-14, err_msg=field)
+        np.testing.assert_allclose(
+            getattr(first, field), getattr(second, field), rtol=1e-12, atol=1e-14, err_msg=field
+        )
 
 
 @pytest.mark.parametrize("name", SHIPPED)
@@ -143,7 +144,8 @@ def test_compiled_mjcf_matches_mujoco_without_its_mesh_files(tmp_path, rng):
     chain = load_chain(path)
     np.testing.assert_allclose(chain.armature, [0.2, 0.3, 0.2])
     oracle = COMPILED_MJCF.replace('<geom type="mesh" mesh="shell"/>', "").replace(
-        '<asset><mesh name="shell" file="no/such/shell.stl"/></asset>', "")
+        '<asset><mesh name="shell" file="no/such/shell.stl"/></asset>', ""
+    )
     _assert_matches_mujoco(robot, oracle, rng)
 
 
@@ -158,16 +160,24 @@ def test_compiled_mjcf_needs_mujoco(tmp_path, monkeypatch):
 
 def test_mesh_inertia_is_refused(tmp_path):
     path = tmp_path / "mesh.xml"
-    path.write_text(COMPILED_MJCF.replace(
-        '<inertial pos="0.05 0 0" mass="1" diaginertia="0.01 0.01 0.005"/>', ""))
+    path.write_text(
+        COMPILED_MJCF.replace(
+            '<inertial pos="0.05 0 0" mass="1" diaginertia="0.01 0.01 0.005"/>', ""
+        )
+    )
     with pytest.raises(ValueError, match=r"'l3'.*mesh geom.*explicit <inertial>"):
         load_robot(path)
 
 
 def test_box_layout_and_model(tmp_path):
-    robot = load_robot("panda", mass=[0.1, 0.2, 0.3, 0.0, 0.1, 0.1, 0.1], payload=(0.5, 3.0, 1.0),
-                       payload_link="link7", payload_offset=(0, 0, 0.1),
-                       friction=dict(viscous=(0.1, 0.5), coulomb=np.tile([0.0, 2.0], (7, 1))))
+    robot = load_robot(
+        "panda",
+        mass=[0.1, 0.2, 0.3, 0.0, 0.1, 0.1, 0.1],
+        payload=(0.5, 3.0, 1.0),
+        payload_link="link7",
+        payload_offset=(0, 0, 0.1),
+        friction=dict(viscous=(0.1, 0.5), coulomb=np.tile([0.0, 2.0], (7, 1))),
+    )
     assert isinstance(robot, UncertainRobot) and robot.n_params == 7 + 1 + 14
     names = robot.model.param_names
     assert names[0] == "mass_scale[link1]" and names[7] == "payload_mass"
@@ -182,7 +192,8 @@ def test_box_layout_and_model(tmp_path):
     hash(robot.model)  # a static argument of jax.jit
     only_viscous = load_robot("ur5e", friction=dict(viscous=(0.0, 1.0)))
     assert only_viscous.model.param_names[6:] == tuple(
-        f"viscous[{j}]" for j in load_chain("ur5e").joint_names)
+        f"viscous[{j}]" for j in load_chain("ur5e").joint_names
+    )
     assert load_robot("iiwa14", dtype=np.float32).nominal.dtype == np.float32
 
 
@@ -192,13 +203,18 @@ def test_payload_on_a_fixed_link_is_carried_by_its_body(tmp_path, rng):
     path.write_text(SUBSET_MJCF)
     on_tool = load_robot(path, payload=(1.0, 1.0), payload_link="tool", payload_offset=(0.1, 0, 0))
     # tool frame in c's frame: pos (0, 0, 0.1), quat (0 1 0 0) turns x to x, y to -y, z to -z.
-    on_body = load_robot(path, payload=(1.0, 1.0), payload_link="c",
-                         payload_offset=(0.1, 0, 0.1))
+    on_body = load_robot(path, payload=(1.0, 1.0), payload_link="c", payload_offset=(0.1, 0, 0.1))
     q, qd = rng.normal(size=3), rng.normal(size=3)
-    np.testing.assert_allclose(on_tool.model.mass_matrix(q, on_tool.nominal),
-                               on_body.model.mass_matrix(q, on_body.nominal), rtol=1e-13)
-    np.testing.assert_allclose(on_tool.model.bias(q, qd, on_tool.nominal),
-                               on_body.model.bias(q, qd, on_body.nominal), rtol=1e-12)
+    np.testing.assert_allclose(
+        on_tool.model.mass_matrix(q, on_tool.nominal),
+        on_body.model.mass_matrix(q, on_body.nominal),
+        rtol=1e-13,
+    )
+    np.testing.assert_allclose(
+        on_tool.model.bias(q, qd, on_tool.nominal),
+        on_body.model.bias(q, qd, on_body.nominal),
+        rtol=1e-12,
+    )
 
 
 # --------------------------------------------------------------------------
@@ -237,15 +253,21 @@ BRANCH = """<link name="l3"><inertial><mass value="1"/>
     <limit lower="-1" upper="1" effort="1" velocity="1"/></joint>"""
 
 
-@pytest.mark.parametrize("change,message", [
-    (dict(kind="floating"), r"<joint name='j1' type='floating'>.*floating base.*Remove"),
-    (dict(kind="planar"), r"<joint name='j1' type='planar'>.*unsupported joint type"),
-    (dict(m1="0"), r"moving <body/link name='l1'> has mass 0.*positive mass"),
-    (dict(m1="-1"), r"<link name='l1'> <inertial> has mass -1.0; masses must be >= 0"),
-    (dict(ixx="-0.1"), r"<link name='l1'> <inertial>.*not positive \(semi\)definite"),
-    (dict(ixx="0.3"), r"<link name='l1'> <inertial>.*triangle inequality"),
-    (dict(extra=BRANCH), r"body 'l1' carries 2 moving chains \(bodies \['l2', 'l3'\]\).*serial"),
-])
+@pytest.mark.parametrize(
+    "change,message",
+    [
+        (dict(kind="floating"), r"<joint name='j1' type='floating'>.*floating base.*Remove"),
+        (dict(kind="planar"), r"<joint name='j1' type='planar'>.*unsupported joint type"),
+        (dict(m1="0"), r"moving <body/link name='l1'> has mass 0.*positive mass"),
+        (dict(m1="-1"), r"<link name='l1'> <inertial> has mass -1.0; masses must be >= 0"),
+        (dict(ixx="-0.1"), r"<link name='l1'> <inertial>.*not positive \(semi\)definite"),
+        (dict(ixx="0.3"), r"<link name='l1'> <inertial>.*triangle inequality"),
+        (
+            dict(extra=BRANCH),
+            r"body 'l1' carries 2 moving chains \(bodies \['l2', 'l3'\]\).*serial",
+        ),
+    ],
+)
 def test_bad_urdf_is_refused_naming_file_and_element(tmp_path, change, message):
     path = _urdf(tmp_path, **change)
     with pytest.raises(ValueError, match=message) as error:
@@ -267,13 +289,18 @@ MJCF = """<mujoco><worldbody><body name="b1" pos="0 0 0.1">
 
 
 @pytest.mark.parametrize("reader", ["auto", "mujoco"])
-@pytest.mark.parametrize("joint,message", [
-    ("<freejoint/>", r"<body name='b1'> has a free joint \(a floating base\).*Remove"),
-    ('<joint name="j1" type="free"/>', r"<body name='b1'> has a free joint"),
-    ('<joint name="j1" type="ball"/>', r"<joint name='j1'> has a ball joint; supported: hinge"),
-    ('<joint name="j1"/><joint name="k1" axis="1 0 0"/>',
-     r"<body name='b1'> has 2 joints.*nested bodies"),
-])
+@pytest.mark.parametrize(
+    "joint,message",
+    [
+        ("<freejoint/>", r"<body name='b1'> has a free joint \(a floating base\).*Remove"),
+        ('<joint name="j1" type="free"/>', r"<body name='b1'> has a free joint"),
+        ('<joint name="j1" type="ball"/>', r"<joint name='j1'> has a ball joint; supported: hinge"),
+        (
+            '<joint name="j1"/><joint name="k1" axis="1 0 0"/>',
+            r"<body name='b1'> has 2 joints.*nested bodies",
+        ),
+    ],
+)
 def test_bad_mjcf_is_refused_naming_file_and_element(tmp_path, joint, message, reader):
     path = tmp_path / "arm.xml"
     path.write_text(MJCF.format(joint=joint))
@@ -284,8 +311,11 @@ def test_bad_mjcf_is_refused_naming_file_and_element(tmp_path, joint, message, r
 
 def test_mujoco_compile_errors_name_the_file(tmp_path):
     path = tmp_path / "arm.xml"  # a triangle-inequality violation MuJoCo itself refuses
-    path.write_text(MJCF.format(joint='<joint name="j1"/>').replace(
-        'diaginertia="0.1 0.1 0.1"', 'diaginertia="0.1 0.1 0.5"', 1))
+    path.write_text(
+        MJCF.format(joint='<joint name="j1"/>').replace(
+            'diaginertia="0.1 0.1 0.1"', 'diaginertia="0.1 0.1 0.5"', 1
+        )
+    )
     with pytest.raises(ValueError, match="triangle inequality") as error:
         load_chain(path, reader="stdlib")
     with pytest.raises(ValueError, match="MuJoCo could not compile it") as error:
@@ -296,8 +326,11 @@ def test_mujoco_compile_errors_name_the_file(tmp_path):
 def test_source_errors(tmp_path):
     with pytest.raises(FileNotFoundError, match=r"no_such\.urdf'.*no such file"):
         load_robot(tmp_path / "no_such.urdf")
-    with pytest.raises(ValueError, match=r"unknown shipped robot 'pandas'; shipped: panda, "
-                                         r"iiwa14, ur5e"):
+    with pytest.raises(
+        ValueError,
+        match=r"unknown shipped robot 'pandas'; shipped: panda, "
+        r"iiwa14, ur5e",
+    ):
         load_robot("pandas")
     sdf = tmp_path / "arm.sdf"
     sdf.write_text("<sdf version='1.6'><model name='x'/></sdf>")
@@ -309,23 +342,39 @@ def test_source_errors(tmp_path):
         load_robot(text)
 
 
-@pytest.mark.parametrize("kwargs,message", [
-    (dict(mass=1.0), r"mass=1.0 for body 'link1'.*0 <= r < 1"),
-    (dict(mass=-0.1), r"mass=-0.1 for body 'link1'"),
-    (dict(mass=[0.1, 0.2]), r"mass must be one ratio or 7"),
-    (dict(payload=(2.0, 1.0)), r"payload has lo=2.0 > hi=1.0 kg; swap them"),
-    (dict(payload=(-1.0, 1.0)), r"payload=\(-1.0, 1.0\) kg: payload masses must be >= 0"),
-    (dict(payload=(0.0, 1.0, 2.0)), r"payload nominal 2.0 kg is outside \[0.0, 1.0\]"),
-    (dict(payload=(0.0, 1.0), payload_link="hand"),
-     r"payload_link='hand' is not a link/body of 'panda'; links: \['link0', 'link1'"),
-    (dict(payload=(0.0, 1.0), payload_link="link0"), r"payload_link='link0' is fixed to the base"),
-    (dict(payload_link="link7"), r"payload_link/payload_offset given but payload is None"),
-    (dict(friction=dict(viscous=(-0.1, 1.0))), r"friction\['viscous'\] for joint 'joint1'.*>= 0"),
-    (dict(friction=dict(coulomb=(2.0, 1.0))),
-     r"friction\['coulomb'\] for joint 'joint1' has lo=2.0 > hi=1.0; swap them"),
-    (dict(friction=dict(stiction=(0.0, 1.0))), r"friction has unknown keys \['stiction'\]"),
-    (dict(friction=dict(viscous=np.zeros((6, 2)))), r"friction\['viscous'\] must be .*\(7, 2\)"),
-])
+@pytest.mark.parametrize(
+    "kwargs,message",
+    [
+        (dict(mass=1.0), r"mass=1.0 for body 'link1'.*0 <= r < 1"),
+        (dict(mass=-0.1), r"mass=-0.1 for body 'link1'"),
+        (dict(mass=[0.1, 0.2]), r"mass must be one ratio or 7"),
+        (dict(payload=(2.0, 1.0)), r"payload has lo=2.0 > hi=1.0 kg; swap them"),
+        (dict(payload=(-1.0, 1.0)), r"payload=\(-1.0, 1.0\) kg: payload masses must be >= 0"),
+        (dict(payload=(0.0, 1.0, 2.0)), r"payload nominal 2.0 kg is outside \[0.0, 1.0\]"),
+        (
+            dict(payload=(0.0, 1.0), payload_link="hand"),
+            r"payload_link='hand' is not a link/body of 'panda'; links: \['link0', 'link1'",
+        ),
+        (
+            dict(payload=(0.0, 1.0), payload_link="link0"),
+            r"payload_link='link0' is fixed to the base",
+        ),
+        (dict(payload_link="link7"), r"payload_link/payload_offset given but payload is None"),
+        (
+            dict(friction=dict(viscous=(-0.1, 1.0))),
+            r"friction\['viscous'\] for joint 'joint1'.*>= 0",
+        ),
+        (
+            dict(friction=dict(coulomb=(2.0, 1.0))),
+            r"friction\['coulomb'\] for joint 'joint1' has lo=2.0 > hi=1.0; swap them",
+        ),
+        (dict(friction=dict(stiction=(0.0, 1.0))), r"friction has unknown keys \['stiction'\]"),
+        (
+            dict(friction=dict(viscous=np.zeros((6, 2)))),
+            r"friction\['viscous'\] must be .*\(7, 2\)",
+        ),
+    ],
+)
 def test_bad_box_arguments(kwargs, message):
     with pytest.raises(ValueError, match=message):
         load_robot("panda", **kwargs)

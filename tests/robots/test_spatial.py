@@ -4,11 +4,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from arm2_urdf import arm2_urdf
 
 from rmijax.robots.loaders import SHIPPED, _resolve, load_chain, load_robot
 from rmijax.robots.planar import planar_arm_model
 from rmijax.robots.spatial import COULOMB_VELOCITY, Payload, smooth_sign, spatial_dynamics
+
+from arm2_urdf import arm2_urdf
 
 pin = pytest.importorskip("pinocchio")
 
@@ -46,8 +47,10 @@ def _inertial(rng, mass=None):
     (ixx, ixy, ixz), (_, iyy, iyz), (_, _, izz) = tensor
     values = dict(ixx=ixx, ixy=ixy, ixz=ixz, iyy=iyy, iyz=iyz, izz=izz)
     inertia = " ".join(f'{k}="{_text([v])}"' for k, v in values.items())
-    return (f'<inertial><origin xyz="{xyz}" rpy="{rpy}"/><mass value="{_text([mass])}"/>'
-            f"<inertia {inertia}/></inertial>")
+    return (
+        f'<inertial><origin xyz="{xyz}" rpy="{rpy}"/><mass value="{_text([mass])}"/>'
+        f"<inertia {inertia}/></inertial>"
+    )
 
 
 def random_chain_urdf(rng, n):
@@ -68,13 +71,16 @@ def random_chain_urdf(rng, n):
             f'<joint name="joint{j + 1}" type="{kind}"><parent link="{parent}"/>'
             f'<child link="link{j + 1}"/><origin xyz="{_text(xyz)}" '
             f'rpy="{_text(rpy)}"/><axis xyz="{_text(axis)}"/>'
-            f"{limit if kind != 'continuous' else ''}</joint>")
+            f"{limit if kind != 'continuous' else ''}</joint>"
+        )
         parent = f"link{j + 1}"
     for name, host in (("tool", parent), ("side", "link1")):
         links.append(f'<link name="{name}">{_inertial(rng)}</link>')
         xyz, rpy = _text(rng.normal(size=3) * 0.2), _text(rng.uniform(-np.pi, np.pi, 3))
-        joints.append(f'<joint name="{name}_fixed" type="fixed"><parent link="{host}"/>'
-                      f'<child link="{name}"/><origin xyz="{xyz}" rpy="{rpy}"/></joint>')
+        joints.append(
+            f'<joint name="{name}_fixed" type="fixed"><parent link="{host}"/>'
+            f'<child link="{name}"/><origin xyz="{xyz}" rpy="{rpy}"/></joint>'
+        )
     return '<robot name="random">\n' + "\n".join(links + joints) + "\n</robot>\n"
 
 
@@ -87,8 +93,9 @@ def _pinocchio_configuration(model, chain_joints, q):
     configuration = np.zeros(model.nq)
     for joint, angle in zip(chain_joints, q, strict=True):
         start, size = model.joints[joint].idx_q, model.joints[joint].nq
-        configuration[start:start + size] = [angle] if size == 1 else [np.cos(angle),
-                                                                       np.sin(angle)]
+        configuration[start : start + size] = (
+            [angle] if size == 1 else [np.cos(angle), np.sin(angle)]
+        )
     return configuration
 
 
@@ -102,8 +109,9 @@ def _pinocchio_reference(pin_model, joint_names, payload_link, payload_offset, q
         model = pin_model.copy()
         for b, joint in enumerate(chain_joints):
             inertia = base[joint]
-            model.inertias[joint] = pin.Inertia(ths[b] * inertia.mass, inertia.lever,
-                                                ths[b] * inertia.inertia)
+            model.inertias[joint] = pin.Inertia(
+                ths[b] * inertia.mass, inertia.lever, ths[b] * inertia.inertia
+            )
         offset = n
         if payload_link is not None:
             frame = model.frames[model.getFrameId(payload_link)]
@@ -116,8 +124,8 @@ def _pinocchio_reference(pin_model, joint_names, payload_link, payload_offset, q
         masses.append(np.triu(matrix) + np.triu(matrix, 1).T)
         h = pin.nonLinearEffects(model, data, qs, qds).copy()
         if th.shape[1] > offset:
-            h += ths[offset:offset + n] * qds
-            h += ths[offset + n:offset + 2 * n] * np.tanh(qds / COULOMB_VELOCITY)
+            h += ths[offset : offset + n] * qds
+            h += ths[offset + n : offset + 2 * n] * np.tanh(qds / COULOMB_VELOCITY)
         references.append(h)
     return np.array(masses), np.array(references)
 
@@ -142,8 +150,9 @@ def _relative(value, reference):
 def _compare_with_pinocchio(source, robot, pin_model, rng, payload_link, payload_offset):
     q, qd, th = _states(rng, robot)
     mass, bias = _batched(robot.model)(q, qd, th)
-    ref_mass, ref_bias = _pinocchio_reference(pin_model, load_chain(source).joint_names,
-                                              payload_link, payload_offset, q, qd, th)
+    ref_mass, ref_bias = _pinocchio_reference(
+        pin_model, load_chain(source).joint_names, payload_link, payload_offset, q, qd, th
+    )
     return _relative(np.asarray(mass), ref_mass), _relative(np.asarray(bias), ref_bias)
 
 
@@ -156,8 +165,14 @@ def test_shipped_arms_match_pinocchio(name, rng):
     np.testing.assert_allclose(pin_model.armature, chain.armature, rtol=0, atol=0)
     assert chain.armature.max() > 0 or name == "iiwa14"  # Panda, UR5e carry armature 0.1
     link, offset = chain.body_names[-2], [0.05, -0.02, 0.1]
-    robot = load_robot(name, mass=0.3, payload=(0.0, 3.0), payload_link=link,
-                       payload_offset=offset, friction=FRICTION)
+    robot = load_robot(
+        name,
+        mass=0.3,
+        payload=(0.0, 3.0),
+        payload_link=link,
+        payload_offset=offset,
+        friction=FRICTION,
+    )
     mass_error, bias_error = _compare_with_pinocchio(name, robot, pin_model, rng, link, offset)
     assert mass_error < 1e-9 and bias_error < 1e-9, (mass_error, bias_error)
 
@@ -171,8 +186,14 @@ def test_random_urdf_chains_match_pinocchio(seed, n, tmp_path):
     assert pin_model.nv == n
     np.testing.assert_array_equal(pin_model.armature, np.zeros(n))  # a URDF has no armature
     link, offset = rng.choice(["tool", "side", f"link{n}"]), rng.normal(size=3) * 0.1
-    robot = load_robot(path, mass=0.5, payload=(0.5, 4.0), payload_link=link,
-                       payload_offset=offset, friction=FRICTION)
+    robot = load_robot(
+        path,
+        mass=0.5,
+        payload=(0.5, 4.0),
+        payload_link=link,
+        payload_offset=offset,
+        friction=FRICTION,
+    )
     assert robot.n_params == 3 * n + 1
     mass_error, bias_error = _compare_with_pinocchio(path, robot, pin_model, rng, link, offset)
     assert mass_error < 1e-9 and bias_error < 1e-9, (mass_error, bias_error)
@@ -184,7 +205,8 @@ def test_without_payload_or_friction_matches_pinocchio(tmp_path, rng):
     robot = load_robot(str(path), mass=0.2)
     assert robot.model.param_names == tuple(f"mass_scale[link{j}]" for j in range(1, 5))
     mass_error, bias_error = _compare_with_pinocchio(
-        path, robot, pin.buildModelFromUrdf(str(path)), rng, None, None)
+        path, robot, pin.buildModelFromUrdf(str(path)), rng, None, None
+    )
     assert mass_error < 1e-9 and bias_error < 1e-9
 
 
@@ -196,24 +218,35 @@ def test_terms_reassemble_mass_matrix_and_bias(name, tmp_path, rng):
         name = path
     chain = load_chain(name)
     n = chain.n_joints
-    dynamics = spatial_dynamics(chain, payload=Payload(n - 2, np.array([0.1, 0.0, -0.05])),
-                                friction=("viscous", "coulomb"))
+    dynamics = spatial_dynamics(
+        chain, payload=Payload(n - 2, np.array([0.1, 0.0, -0.05])), friction=("viscous", "coulomb")
+    )
     p = len(dynamics.param_names)
     assert p == 3 * n + 1 and dynamics.affine == tuple(range(n + 1, 3 * n + 1))
     count = 20
     q, qd = rng.uniform(-np.pi, np.pi, (count, n)), rng.normal(size=(count, n))
-    th = np.concatenate([rng.uniform(0.5, 1.5, (count, n)), rng.uniform(0, 3, (count, 1)),
-                         rng.uniform(0, 2, (count, 2 * n))], axis=1)
+    th = np.concatenate(
+        [
+            rng.uniform(0.5, 1.5, (count, n)),
+            rng.uniform(0, 3, (count, 1)),
+            rng.uniform(0, 2, (count, 2 * n)),
+        ],
+        axis=1,
+    )
     mass0, mass_b, bias0, bias_b = jax.jit(jax.vmap(dynamics.terms))(q, qd)
     assert mass_b.shape == (count, p, n, n) and bias_b.shape == (count, p, n)
-    np.testing.assert_array_equal(mass_b[:, n + 1:], 0.0)  # friction enters h only
+    np.testing.assert_array_equal(mass_b[:, n + 1 :], 0.0)  # friction enters h only
     np.testing.assert_array_equal(mass0, np.broadcast_to(np.diag(chain.armature), mass0.shape))
     mass = jax.vmap(dynamics.mass_matrix)(q, th)
     bias = jax.vmap(dynamics.bias)(q, qd, th)
-    assert _relative(np.asarray(mass0 + jnp.einsum("sb,sbij->sij", th, mass_b)),
-                     np.asarray(mass)) < 1e-12
-    assert _relative(np.asarray(bias0 + jnp.einsum("sb,sbi->si", th, bias_b)),
-                     np.asarray(bias)) < 1e-12
+    assert (
+        _relative(np.asarray(mass0 + jnp.einsum("sb,sbij->sij", th, mass_b)), np.asarray(mass))
+        < 1e-12
+    )
+    assert (
+        _relative(np.asarray(bias0 + jnp.einsum("sb,sbi->si", th, bias_b)), np.asarray(bias))
+        < 1e-12
+    )
 
 
 @pytest.mark.parametrize("name", SHIPPED)
@@ -227,7 +260,7 @@ def test_mass_matrix_spd_and_passivity(name, rng):
         np.testing.assert_array_equal(mass, mass.T)
         assert np.linalg.eigvalsh(mass).min() > 0
         _, mass_dot = jax.jvp(lambda x: model.mass_matrix(x, nominal), (q,), (qd,))
-        coriolis = 0.5 * jax.jacfwd(lambda v: model.bias(q, v, nominal))(qd)
+        coriolis = 0.5 * jax.jacfwd(lambda v, q=q: model.bias(q, v, nominal))(qd)
         residual = np.asarray(mass_dot - 2 * coriolis)
         scale = np.abs(np.asarray(mass_dot)).max()
         assert scale > 1e-3  # the check is not vacuous
@@ -249,15 +282,17 @@ def test_planar_two_joint_urdf_equals_planar_model(inertia, tmp_path, rng):
         bias = np.asarray(robot.model.bias(q, qd, robot.nominal))
         # Rotational inertia about the joint axes adds I (both links) and I (link 2 only).
         extra = inertia * np.array([[2.0, 1.0], [1.0, 1.0]])
-        np.testing.assert_allclose(mass, np.asarray(planar.mass_matrix(q, th_planar)) + extra,
-                                   rtol=1e-12, atol=1e-12)
-        np.testing.assert_allclose(bias, np.asarray(planar.bias(q, qd, th_planar)),
-                                   rtol=1e-12, atol=1e-10)
+        np.testing.assert_allclose(
+            mass, np.asarray(planar.mass_matrix(q, th_planar)) + extra, rtol=1e-12, atol=1e-12
+        )
+        np.testing.assert_allclose(
+            bias, np.asarray(planar.bias(q, qd, th_planar)), rtol=1e-12, atol=1e-10
+        )
         reference = pin.crba(pin_model, pin_data, q)
-        np.testing.assert_allclose(mass, np.triu(reference) + np.triu(reference, 1).T,
-                                   rtol=1e-12)
-        np.testing.assert_allclose(bias, pin.nonLinearEffects(pin_model, pin_data, q, qd),
-                                   rtol=1e-12, atol=1e-10)
+        np.testing.assert_allclose(mass, np.triu(reference) + np.triu(reference, 1).T, rtol=1e-12)
+        np.testing.assert_allclose(
+            bias, pin.nonLinearEffects(pin_model, pin_data, q, qd), rtol=1e-12, atol=1e-10
+        )
 
 
 @pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])

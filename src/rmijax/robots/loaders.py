@@ -90,17 +90,20 @@ def _axis_angle(axis, angle):
 
 def _rpy(roll, pitch, yaw):
     """URDF fixed-axis roll, pitch, yaw: ``Rz(yaw) Ry(pitch) Rx(roll)``."""
-    return (_axis_angle([0, 0, 1], yaw) @ _axis_angle([0, 1, 0], pitch)
-            @ _axis_angle([1, 0, 0], roll))
+    return (
+        _axis_angle([0, 0, 1], yaw) @ _axis_angle([0, 1, 0], pitch) @ _axis_angle([1, 0, 0], roll)
+    )
 
 
 def _quat(wxyz):
     w, x, y, z = np.asarray(wxyz, dtype=float) / np.linalg.norm(wxyz)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 # --------------------------------------------------------------------------
@@ -142,7 +145,8 @@ def _floats(element, attribute, default, label, where, size=3):
         values = np.array([float(v) for v in text.split()])
     except ValueError:
         raise ValueError(
-            f"{label}: {where} {attribute}={text!r} is not a list of numbers") from None
+            f"{label}: {where} {attribute}={text!r} is not a list of numbers"
+        ) from None
     if values.size != size:
         raise ValueError(f"{label}: {where} {attribute}={text!r} needs {size} numbers")
     return values
@@ -198,10 +202,16 @@ def _read_urdf(root, label):
                 if np.linalg.norm(axis) == 0:
                     raise ValueError(f"{label}: {where} <axis xyz='0 0 0'>: give a nonzero axis")
                 kind = "prismatic" if joint.get("type") == "prismatic" else "revolute"
-                moving = _Joint(joint.get("name"), kind, axis / np.linalg.norm(axis),
-                                np.zeros(3), 0.0)
-        body = _Body(name, index[joint.find("parent").get("link")] if joint is not None else -1,
-                     rotation, position, moving)
+                moving = _Joint(
+                    joint.get("name"), kind, axis / np.linalg.norm(axis), np.zeros(3), 0.0
+                )
+        body = _Body(
+            name,
+            index[joint.find("parent").get("link")] if joint is not None else -1,
+            rotation,
+            position,
+            moving,
+        )
         inertial = links[name].find("inertial")
         if inertial is not None:
             where = f"<link name={name!r}> <inertial>"
@@ -211,11 +221,17 @@ def _read_urdf(root, label):
             body.com = _floats(origin, "xyz", [0, 0, 0], label, where + " <origin>")
             frame = _rpy(*_floats(origin, "rpy", [0, 0, 0], label, where + " <origin>"))
             element = inertial.find("inertia")
-            get = (lambda k: float(element.get(k, 0.0))) if element is not None else (
-                lambda k: 0.0)
-            tensor = np.array([[get("ixx"), get("ixy"), get("ixz")],
-                               [get("ixy"), get("iyy"), get("iyz")],
-                               [get("ixz"), get("iyz"), get("izz")]])
+            moments = {
+                key: float(element.get(key, 0.0)) if element is not None else 0.0
+                for key in ("ixx", "ixy", "ixz", "iyy", "iyz", "izz")
+            }
+            tensor = np.array(
+                [
+                    [moments["ixx"], moments["ixy"], moments["ixz"]],
+                    [moments["ixy"], moments["iyy"], moments["iyz"]],
+                    [moments["ixz"], moments["iyz"], moments["izz"]],
+                ]
+            )
             _check_inertial(body.mass, tensor, label, where)
             body.inertia = frame @ tensor @ frame.T
         index[name] = len(bodies)
@@ -227,10 +243,33 @@ def _read_urdf(root, label):
 # MJCF, explicit subset (standard library)
 # --------------------------------------------------------------------------
 
-_MJCF_TOP = {"compiler", "option", "size", "visual", "statistic", "asset", "worldbody",
-             "actuator", "sensor", "contact", "keyframe", "tendon", "equality", "custom"}
-_MJCF_COMPILER = {"angle", "eulerseq", "autolimits", "meshdir", "texturedir", "assetdir",
-                  "inertiafromgeom", "discardvisual", "strippath"}
+_MJCF_TOP = {
+    "compiler",
+    "option",
+    "size",
+    "visual",
+    "statistic",
+    "asset",
+    "worldbody",
+    "actuator",
+    "sensor",
+    "contact",
+    "keyframe",
+    "tendon",
+    "equality",
+    "custom",
+}
+_MJCF_COMPILER = {
+    "angle",
+    "eulerseq",
+    "autolimits",
+    "meshdir",
+    "texturedir",
+    "assetdir",
+    "inertiafromgeom",
+    "discardvisual",
+    "strippath",
+}
 _MJCF_BODY = {"body", "inertial", "joint", "freejoint", "geom", "site", "camera", "light"}
 _ORIENTATIONS = ("quat", "axisangle", "euler", "xyaxes", "zaxis")
 
@@ -248,9 +287,14 @@ class _MjcfAngles:
         if not given:
             return np.eye(3)
         kind = given[0]
-        values = _floats(element, kind, None, label, where,
-                         size={"quat": 4, "axisangle": 4, "euler": 3, "xyaxes": 6,
-                               "zaxis": 3}[kind])
+        values = _floats(
+            element,
+            kind,
+            None,
+            label,
+            where,
+            size={"quat": 4, "axisangle": 4, "euler": 3, "xyaxes": 6, "zaxis": 3}[kind],
+        )
         if kind == "quat":
             return _quat(values)
         if kind == "axisangle":
@@ -313,8 +357,13 @@ def _read_mjcf_simple(root, label):
             joint = None
             for element_joint in joints:
                 joint = _mjcf_joint(element_joint, name, index, label, where)
-            body = _Body(name, parent, angles.rotation(child, label, where),
-                         _floats(child, "pos", [0, 0, 0], label, where), joint)
+            body = _Body(
+                name,
+                parent,
+                angles.rotation(child, label, where),
+                _floats(child, "pos", [0, 0, 0], label, where),
+                joint,
+            )
             inertial = child.find("inertial")
             if inertial is None and geoms_weigh and child.find("geom") is not None:
                 raise _NeedsCompiler(f"{where} without <inertial> (inertia from geoms)")
@@ -324,8 +373,7 @@ def _read_mjcf_simple(root, label):
                 body.com = _floats(inertial, "pos", None, label, iwhere)
                 if inertial.get("fullinertia") is not None:
                     i = _floats(inertial, "fullinertia", None, label, iwhere, size=6)
-                    tensor = np.array([[i[0], i[3], i[4]], [i[3], i[1], i[5]],
-                                       [i[4], i[5], i[2]]])
+                    tensor = np.array([[i[0], i[3], i[4]], [i[3], i[1], i[5]], [i[4], i[5], i[2]]])
                     frame = np.eye(3)
                 else:
                     tensor = np.diag(_floats(inertial, "diaginertia", None, label, iwhere))
@@ -373,9 +421,13 @@ def _mjcf_joint(element, body_name, index, label, where):
     axis = _floats(element, "axis", [0, 0, 1], label, jwhere)
     if np.linalg.norm(axis) == 0:
         raise ValueError(f"{label}: {jwhere} axis='0 0 0': give a nonzero axis")
-    return _Joint(name, "revolute" if kind == "hinge" else "prismatic",
-                  axis / np.linalg.norm(axis), _floats(element, "pos", [0, 0, 0], label, jwhere),
-                  float(element.get("armature", 0.0)))
+    return _Joint(
+        name,
+        "revolute" if kind == "hinge" else "prismatic",
+        axis / np.linalg.norm(axis),
+        _floats(element, "pos", [0, 0, 0], label, jwhere),
+        float(element.get("armature", 0.0)),
+    )
 
 
 # --------------------------------------------------------------------------
@@ -401,8 +453,9 @@ def _read_mjcf_compiled(path, label, reason):
         if geom.type in shapes or geom.meshname:
             body = geom.parent
             if from_geoms == mujoco.mjtInertiaFromGeom.mjINERTIAFROMGEOM_TRUE or (
-                    from_geoms == mujoco.mjtInertiaFromGeom.mjINERTIAFROMGEOM_AUTO
-                    and not body.explicitinertial):
+                from_geoms == mujoco.mjtInertiaFromGeom.mjINERTIAFROMGEOM_AUTO
+                and not body.explicitinertial
+            ):
                 raise ValueError(
                     f"{label}: <body name={body.name!r}> takes its inertia from a mesh geom; "
                     "meshes are not read. Give the body an explicit <inertial>."
@@ -418,9 +471,12 @@ def _read_mjcf_compiled(path, label, reason):
     except Exception as error:
         raise ValueError(f"{label}: MuJoCo could not compile it: {error}") from None
     name_of = mujoco.mj_id2name
-    kinds = {mujoco.mjtJoint.mjJNT_HINGE: ("revolute", "hinge"),
-             mujoco.mjtJoint.mjJNT_SLIDE: ("prismatic", "slide"),
-             mujoco.mjtJoint.mjJNT_BALL: (None, "ball"), mujoco.mjtJoint.mjJNT_FREE: (None, "free")}
+    kinds = {
+        mujoco.mjtJoint.mjJNT_HINGE: ("revolute", "hinge"),
+        mujoco.mjtJoint.mjJNT_SLIDE: ("prismatic", "slide"),
+        mujoco.mjtJoint.mjJNT_BALL: (None, "ball"),
+        mujoco.mjtJoint.mjJNT_FREE: (None, "free"),
+    }
     bodies = []
     for b in range(1, model.nbody):
         name = name_of(model, mujoco.mjtObj.mjOBJ_BODY, b) or f"body #{b}"
@@ -437,15 +493,28 @@ def _read_mjcf_compiled(path, label, reason):
             if kind is None:
                 raise _unsupported(label, f"{where} <joint name={jname!r}>", mj_kind)
             if model.qpos0[model.jnt_qposadr[j]] != 0:
-                raise ValueError(f"{label}: {where} <joint name={jname!r}> has ref != 0, "
-                                 "which is not supported; remove it")
-            joint = _Joint(jname, kind, np.array(model.jnt_axis[j]), np.array(model.jnt_pos[j]),
-                           float(model.dof_armature[model.jnt_dofadr[j]]))
+                raise ValueError(
+                    f"{label}: {where} <joint name={jname!r}> has ref != 0, "
+                    "which is not supported; remove it"
+                )
+            joint = _Joint(
+                jname,
+                kind,
+                np.array(model.jnt_axis[j]),
+                np.array(model.jnt_pos[j]),
+                float(model.dof_armature[model.jnt_dofadr[j]]),
+            )
         frame = _quat(model.body_iquat[b])
-        body = _Body(name, int(model.body_parentid[b]) - 1, _quat(model.body_quat[b]),
-                     np.array(model.body_pos[b]), joint, float(model.body_mass[b]),
-                     np.array(model.body_ipos[b]),
-                     frame @ np.diag(model.body_inertia[b]) @ frame.T)
+        body = _Body(
+            name,
+            int(model.body_parentid[b]) - 1,
+            _quat(model.body_quat[b]),
+            np.array(model.body_pos[b]),
+            joint,
+            float(model.body_mass[b]),
+            np.array(model.body_ipos[b]),
+            frame @ np.diag(model.body_inertia[b]) @ frame.T,
+        )
         bodies.append(body)
     return spec.modelname or "robot", bodies
 
@@ -502,18 +571,27 @@ def _build_chain(name, bodies, label):
         current = moving_children[current][0]
         order.append(current)
     if not order:
-        raise ValueError(f"{label}: no moving joint; the arm needs at least one hinge/revolute "
-                         "or slide/prismatic joint")
+        raise ValueError(
+            f"{label}: no moving joint; the arm needs at least one hinge/revolute "
+            "or slide/prismatic joint"
+        )
     position = {k: i for i, k in enumerate(order)}
     parts = {k: [] for k in order}
     frames = {}
     for k, body in enumerate(bodies):
         rotation, origin = pose[k]
         if carrier[k] >= 0:
-            parts[carrier[k]].append((body.mass, origin + rotation @ (body.com - shift[k]),
-                                      rotation @ body.inertia @ rotation.T))
-        frames[body.name] = (position.get(carrier[k], -1),
-                             *_compose(pose[k], (np.eye(3), -shift[k])))
+            parts[carrier[k]].append(
+                (
+                    body.mass,
+                    origin + rotation @ (body.com - shift[k]),
+                    rotation @ body.inertia @ rotation.T,
+                )
+            )
+        frames[body.name] = (
+            position.get(carrier[k], -1),
+            *_compose(pose[k], (np.eye(3), -shift[k])),
+        )
     merged = [_merge(parts[k]) for k in order]
     for k, (mass, _, _) in zip(order, merged, strict=True):
         if not mass > 0:
@@ -553,10 +631,14 @@ def _resolve(source):
     path = pathlib.Path(source)
     if not path.exists():
         if isinstance(source, str) and not path.suffix and os.sep not in source:
-            raise ValueError(f"unknown shipped robot {source!r}; shipped: {', '.join(SHIPPED)} "
-                             "(or give the path of a URDF or MJCF file)")
-        raise FileNotFoundError(f"source {str(path)!r}: no such file; give the path of a URDF "
-                                f"or MJCF file, or a shipped name ({', '.join(SHIPPED)})")
+            raise ValueError(
+                f"unknown shipped robot {source!r}; shipped: {', '.join(SHIPPED)} "
+                "(or give the path of a URDF or MJCF file)"
+            )
+        raise FileNotFoundError(
+            f"source {str(path)!r}: no such file; give the path of a URDF "
+            f"or MJCF file, or a shipped name ({', '.join(SHIPPED)})"
+        )
     return path
 
 
@@ -576,12 +658,16 @@ def _describe(source, reader="auto"):
             name, bodies = _read_mjcf_simple(root, label)
         except _NeedsCompiler as reason:
             if reader == "stdlib":
-                raise ValueError(f"{label}: {reason} is outside the explicit MJCF subset that "
-                                 "the built-in reader reads; use reader='auto'") from None
+                raise ValueError(
+                    f"{label}: {reason} is outside the explicit MJCF subset that "
+                    "the built-in reader reads; use reader='auto'"
+                ) from None
             name, bodies = _read_mjcf_compiled(path, label, reason)
     else:
-        raise ValueError(f"{label} is neither URDF (<robot> root) nor MJCF (<mujoco> root); "
-                         f"its root element is <{root.tag}>")
+        raise ValueError(
+            f"{label} is neither URDF (<robot> root) nor MJCF (<mujoco> root); "
+            f"its root element is <{root.tag}>"
+        )
     return _build_chain(name, bodies, label)
 
 
@@ -605,21 +691,32 @@ def _pairs(value, n, argument, joints):
     if array.shape == (2,):
         array = np.tile(array, (n, 1))
     if array.shape != (n, 2):
-        raise ValueError(f"{argument} must be (lo, hi) or one pair per joint, shape ({n}, 2); "
-                         f"got shape {np.shape(value)}")
+        raise ValueError(
+            f"{argument} must be (lo, hi) or one pair per joint, shape ({n}, 2); "
+            f"got shape {np.shape(value)}"
+        )
     for j in range(n):
         lo, hi = array[j]
         if not (np.isfinite(lo) and np.isfinite(hi)) or lo < 0 or hi < 0:
-            raise ValueError(f"{argument} for joint {joints[j]!r} is ({lo}, {hi}); friction "
-                             "coefficients must be finite and >= 0")
+            raise ValueError(
+                f"{argument} for joint {joints[j]!r} is ({lo}, {hi}); friction "
+                "coefficients must be finite and >= 0"
+            )
         if lo > hi:
-            raise ValueError(f"{argument} for joint {joints[j]!r} has lo={lo} > hi={hi}; "
-                             "swap them")
+            raise ValueError(f"{argument} for joint {joints[j]!r} has lo={lo} > hi={hi}; swap them")
     return array[:, 0], array[:, 1]
 
 
-def load_robot(source, *, mass=0.0, payload=None, payload_link=None, payload_offset=None,
-               friction=None, dtype=None) -> UncertainRobot:
+def load_robot(
+    source,
+    *,
+    mass=0.0,
+    payload=None,
+    payload_link=None,
+    payload_offset=None,
+    friction=None,
+    dtype=None,
+) -> UncertainRobot:
     """Load an arm as an uncertain robot with a box of mass scales, payload and friction.
 
     Parameters ``th`` are, in order: one mass scale per moving body (base to
@@ -659,22 +756,30 @@ def load_robot(source, *, mass=0.0, payload=None, payload_link=None, payload_off
     description = _describe(source)
     chain = description.chain
     n = chain.n_joints
-    ratios = np.broadcast_to(np.asarray(mass, dtype=float), (n,)) if np.ndim(mass) == 0 else (
-        np.asarray(mass, dtype=float))
+    ratios = (
+        np.broadcast_to(np.asarray(mass, dtype=float), (n,))
+        if np.ndim(mass) == 0
+        else (np.asarray(mass, dtype=float))
+    )
     if ratios.shape != (n,):
-        raise ValueError(f"mass must be one ratio or {n} (one per moving body "
-                         f"{list(chain.body_names)}); got shape {np.shape(mass)}")
+        raise ValueError(
+            f"mass must be one ratio or {n} (one per moving body "
+            f"{list(chain.body_names)}); got shape {np.shape(mass)}"
+        )
     for body, r in zip(chain.body_names, ratios, strict=True):
         if not (0 <= r < 1):
-            raise ValueError(f"mass={float(r)!r} for body {body!r}: the relative mass "
-                             "uncertainty r must satisfy 0 <= r < 1 (scales lie in [1 - r, 1 + r])")
+            raise ValueError(
+                f"mass={float(r)!r} for body {body!r}: the relative mass "
+                "uncertainty r must satisfy 0 <= r < 1 (scales lie in [1 - r, 1 + r])"
+            )
     lo, hi, nominal = [1 - ratios], [1 + ratios], [np.ones(n)]
 
     payload_spec = None
     if payload is None:
         if payload_link is not None or payload_offset is not None:
-            raise ValueError("payload_link/payload_offset given but payload is None; give "
-                             "payload=(lo, hi) in kg")
+            raise ValueError(
+                "payload_link/payload_offset given but payload is None; give payload=(lo, hi) in kg"
+            )
     else:
         values = [float(v) for v in payload]
         if len(values) not in (2, 3):
@@ -686,16 +791,22 @@ def load_robot(source, *, mass=0.0, payload=None, payload_link=None, payload_off
         if p_lo > p_hi:
             raise ValueError(f"payload has lo={p_lo} > hi={p_hi} kg; swap them")
         if not p_lo <= p_nom <= p_hi:
-            raise ValueError(f"payload nominal {p_nom} kg is outside [{p_lo}, {p_hi}]; "
-                             "give a nominal inside the interval")
+            raise ValueError(
+                f"payload nominal {p_nom} kg is outside [{p_lo}, {p_hi}]; "
+                "give a nominal inside the interval"
+            )
         link = chain.body_names[-1] if payload_link is None else payload_link
         if link not in description.frames:
-            raise ValueError(f"payload_link={link!r} is not a link/body of {source!r}; links: "
-                             f"{sorted(description.frames)}")
+            raise ValueError(
+                f"payload_link={link!r} is not a link/body of {source!r}; links: "
+                f"{sorted(description.frames)}"
+            )
         body, rotation, origin = description.frames[link]
         if body < 0:
-            raise ValueError(f"payload_link={link!r} is fixed to the base, so a payload there "
-                             "loads no joint; choose a link of the moving chain")
+            raise ValueError(
+                f"payload_link={link!r} is fixed to the base, so a payload there "
+                "loads no joint; choose a link of the moving chain"
+            )
         offset = np.zeros(3) if payload_offset is None else np.asarray(payload_offset, float)
         if offset.shape != (3,):
             raise ValueError(f"payload_offset must be (x, y, z) in m; got {payload_offset}")
@@ -708,8 +819,9 @@ def load_robot(source, *, mass=0.0, payload=None, payload_link=None, payload_off
     if friction is not None:
         unknown = set(friction) - {"viscous", "coulomb"}
         if unknown:
-            raise ValueError(f"friction has unknown keys {sorted(unknown)}; use 'viscous' "
-                             "and/or 'coulomb'")
+            raise ValueError(
+                f"friction has unknown keys {sorted(unknown)}; use 'viscous' and/or 'coulomb'"
+            )
         kinds = tuple(k for k in ("viscous", "coulomb") if k in friction)
         for kind in kinds:
             f_lo, f_hi = _pairs(friction[kind], n, f"friction[{kind!r}]", chain.joint_names)
@@ -728,5 +840,6 @@ def load_robot(source, *, mass=0.0, payload=None, payload_link=None, payload_off
         param_names=dynamics.param_names,
         structure=LinearDynamics(affine=dynamics.affine, terms=dynamics.terms),
     )
-    return uncertain_robot(model, np.concatenate(nominal), np.concatenate(lo),
-                           np.concatenate(hi), dtype=dtype)
+    return uncertain_robot(
+        model, np.concatenate(nominal), np.concatenate(lo), np.concatenate(hi), dtype=dtype
+    )

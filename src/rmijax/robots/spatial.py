@@ -94,8 +94,15 @@ class Chain:
 
     def __post_init__(self):
         n = len(self.joint_types)
-        shapes = dict(rotations=(n, 3, 3), translations=(n, 3), axes=(n, 3), armature=(n,),
-                      masses=(n,), coms=(n, 3), inertias=(n, 3, 3))
+        shapes = dict(
+            rotations=(n, 3, 3),
+            translations=(n, 3),
+            axes=(n, 3),
+            armature=(n,),
+            masses=(n,),
+            coms=(n, 3),
+            inertias=(n, 3, 3),
+        )
         for field, shape in shapes.items():
             value = np.array(getattr(self, field), dtype=np.float64)
             if value.shape != shape:
@@ -211,8 +218,11 @@ def spatial_dynamics(
             else:
                 origin = tree_pos
             if revolute[j]:
-                turn = (jnp.eye(3, dtype=dtype) + jnp.sin(q[j]) * jnp.asarray(skews[j], dtype)
-                        + (1 - jnp.cos(q[j])) * jnp.asarray(skews2[j], dtype))
+                turn = (
+                    jnp.eye(3, dtype=dtype)
+                    + jnp.sin(q[j]) * jnp.asarray(skews[j], dtype)
+                    + (1 - jnp.cos(q[j])) * jnp.asarray(skews2[j], dtype)
+                )
                 rotation = tree_rot @ turn
                 axes_ang.append(axis)
                 axes_lin.append(jnp.cross(origin, axis))
@@ -234,12 +244,14 @@ def spatial_dynamics(
         """
         dtype = origins.dtype
         com = origins + _mv(rotations, jnp.asarray(chain.coms, dtype))
-        inertia = jnp.einsum("nij,njk,nlk->nil", rotations,
-                             jnp.asarray(chain.inertias, dtype), rotations)
+        inertia = jnp.einsum(
+            "nij,njk,nlk->nil", rotations, jnp.asarray(chain.inertias, dtype), rotations
+        )
         mass = jnp.asarray(chain.masses, dtype)
         if payload is not None:
             point = origins[payload.body] + rotations[payload.body] @ jnp.asarray(
-                payload.point, dtype)
+                payload.point, dtype
+            )
             com = jnp.concatenate([com, point[None]])
             inertia = jnp.concatenate([inertia, jnp.zeros((1, 3, 3), dtype)])
             mass = jnp.concatenate([mass, jnp.ones(1, dtype)])
@@ -251,10 +263,13 @@ def spatial_dynamics(
         ang, lin = motion[..., :3], motion[..., 3:]
         extra = (None,) * (motion.ndim - 2)
         moment = moment[(slice(None), *extra)]
-        return jnp.concatenate([
-            jnp.einsum("uij,u...j->u...i", inertia, ang) + jnp.cross(moment, lin),
-            mass[(slice(None), *extra, None)] * lin - jnp.cross(moment, ang),
-        ], -1)
+        return jnp.concatenate(
+            [
+                jnp.einsum("uij,u...j->u...i", inertia, ang) + jnp.cross(moment, lin),
+                mass[(slice(None), *extra, None)] * lin - jnp.cross(moment, ang),
+            ],
+            -1,
+        )
 
     def velocities(motion, qd):
         """Body velocities v (n,6) and bias accelerations a (n,6), gravity included."""
@@ -275,8 +290,7 @@ def spatial_dynamics(
         force = apply_inertia(*units_inertia, a)
         w, vo = v[:, :3], v[:, 3:]
         n_, f_ = momentum[:, :3], momentum[:, 3:]
-        return force + jnp.concatenate([jnp.cross(w, n_) + jnp.cross(vo, f_),
-                                        jnp.cross(w, f_)], -1)
+        return force + jnp.concatenate([jnp.cross(w, n_) + jnp.cross(vo, f_), jnp.cross(w, f_)], -1)
 
     def per_body(values, th):
         """Sum the weighted unit quantities (u, ...) onto their bodies (n, ...)."""
@@ -290,7 +304,7 @@ def spatial_dynamics(
         dtype = qd.dtype
         torque = jnp.zeros(n, dtype)
         for k, kind in enumerate(friction):
-            coefficient = th[units + k * n: units + (k + 1) * n]
+            coefficient = th[units + k * n : units + (k + 1) * n]
             torque = torque + coefficient * (qd if kind == "viscous" else smooth_sign(qd))
         return torque
 
@@ -310,8 +324,9 @@ def spatial_dynamics(
         q, qd, th = _common(q, qd, th)
         rotations, origins, motion = kinematics(q)
         velocity, acceleration = velocities(motion, qd)
-        forces = per_body(unit_forces(unit_inertias(rotations, origins), velocity,
-                                      acceleration), th)
+        forces = per_body(
+            unit_forces(unit_inertias(rotations, origins), velocity, acceleration), th
+        )
         total = jnp.flip(jnp.cumsum(jnp.flip(forces, 0), 0), 0)
         return jnp.sum(motion * total, -1) + friction_torque(qd, th)
 
@@ -336,8 +351,7 @@ def spatial_dynamics(
             eye = jnp.eye(n, dtype=dtype)
             rows = [eye * (qd if k == "viscous" else smooth_sign(qd))[None, :] for k in friction]
             bias_terms = jnp.concatenate([bias_terms, *rows])
-            mass_terms = jnp.concatenate(
-                [mass_terms, jnp.zeros((n * len(friction), n, n), dtype)])
+            mass_terms = jnp.concatenate([mass_terms, jnp.zeros((n * len(friction), n, n), dtype)])
         mass0 = jnp.diag(jnp.asarray(chain.armature, dtype))
         return mass0, mass_terms, jnp.zeros(n, dtype), bias_terms
 
