@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rmijax.robots.loaders import SHIPPED, _resolve, load_chain, load_robot
+from rmijax.robots.loaders import SHIPPED, description_path as _resolve, load_chain, load_robot
 from rmijax.robots.planar import planar_arm_model
 from rmijax.robots.spatial import COULOMB_VELOCITY, Payload, smooth_sign, spatial_dynamics
 

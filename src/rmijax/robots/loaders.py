@@ -33,12 +33,13 @@ import xml.etree.ElementTree as ET
 
 import numpy as np
 
+from rmijax import _checks
 from rmijax.robots.box import UncertainRobot, uncertain_robot
 from rmijax.robots.model import RobotModel
 from rmijax.robots.spatial import Chain, Payload, spatial_dynamics
 from rmijax.robots.structure import LinearDynamics
 
-__all__ = ["SHIPPED", "load_chain", "load_robot"]
+__all__ = ["SHIPPED", "description_path", "load_chain", "load_robot"]
 
 SHIPPED = ("panda", "iiwa14", "ur5e")
 """Names of the descriptions shipped in ``rmijax/robots/descriptions/`` (MJCF, mesh-free)."""
@@ -621,7 +622,8 @@ def _build_chain(name, bodies, label):
 # --------------------------------------------------------------------------
 
 
-def _resolve(source):
+def description_path(source) -> pathlib.Path:
+    """The file behind ``source``: a shipped name's MJCF, or the given path (checked to exist)."""
     if isinstance(source, str) and source in SHIPPED:
         resource = importlib.resources.files("rmijax.robots") / "descriptions" / f"{source}.xml"
         with importlib.resources.as_file(resource) as path:
@@ -643,7 +645,7 @@ def _resolve(source):
 
 
 def _describe(source, reader="auto"):
-    path = _resolve(source)
+    path = description_path(source)
     label = f"{str(path)!r}"
     try:
         root = ET.parse(path).getroot()
@@ -739,7 +741,8 @@ def load_robot(
             all joints or an (n, 2) array, in N m s/rad and N m (N s/m, N for
             prismatic joints); nominal the midpoint. An omitted key adds no
             parameters (that friction is absent, not zero-with-uncertainty).
-        dtype: float dtype of the box; default follows NumPy float64 inputs.
+        dtype: float dtype of the box; default float64 when x64 is enabled, else float32
+            (as every builder).
 
     Returns:
         An :class:`UncertainRobot` whose model has a ``LinearDynamics`` structure
@@ -841,5 +844,9 @@ def load_robot(
         structure=LinearDynamics(affine=dynamics.affine, terms=dynamics.terms),
     )
     return uncertain_robot(
-        model, np.concatenate(nominal), np.concatenate(lo), np.concatenate(hi), dtype=dtype
+        model,
+        np.concatenate(nominal),
+        np.concatenate(lo),
+        np.concatenate(hi),
+        dtype=dtype or _checks.default_float(),
     )
