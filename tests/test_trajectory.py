@@ -114,3 +114,49 @@ def test_trajectory_is_a_pytree_with_static_step():
     doubled = jax.jit(lambda tr: dataclasses.replace(tr, kp=tr.kp * 2))(traj)
     assert doubled.dt == 0.01
     np.testing.assert_array_equal(doubled.kp, [200.0, 200.0])
+
+
+def test_waypoint_trajectory_is_a_rest_to_rest_minimum_jerk_move():
+    points = np.array([[0.0, 0.5, -0.3], [0.8, -0.2, 0.1], [0.8, -0.2, 0.1], [-0.4, 0.3, 0.6]])
+    times = np.array([0.0, 1.5, 2.0, 3.2])
+    traj = rmijax.waypoint_trajectory(points, times=times, dt=0.001)
+    assert traj.q_d.shape == (3201, 3)
+    for point, t in zip(points, times, strict=True):
+        k = int(round(t / 0.001))
+        np.testing.assert_allclose(traj.q_d[k], point, atol=1e-12)
+        np.testing.assert_allclose(traj.qd_d[k], 0.0, atol=1e-12)
+        np.testing.assert_allclose(traj.qdd_d[k], 0.0, atol=1e-9)
+    # the dwell between identical waypoints holds still
+    dwell = slice(1500, 2001)
+    np.testing.assert_allclose(traj.q_d[dwell], points[1][None].repeat(501, 0), atol=1e-12)
+    # velocities and accelerations are the derivatives of the positions (central differences,
+    # away from the waypoints where the jerk jumps)
+    q, qd = np.asarray(traj.q_d), np.asarray(traj.qd_d)
+    smooth = np.ones(3199, bool)
+    for t in times:
+        k = int(round(t / 0.001))
+        smooth[max(k - 2, 0) : k + 1] = False
+    np.testing.assert_allclose(((q[2:] - q[:-2]) / 0.002)[smooth], qd[1:-1][smooth], atol=2e-5)
+    accel = np.asarray(traj.qdd_d)[1:-1]
+    np.testing.assert_allclose(((qd[2:] - qd[:-2]) / 0.002)[smooth], accel[smooth], atol=2e-4)
+    # the minimum-jerk peak speed is 15/8 of the mean speed
+    np.testing.assert_allclose(
+        np.max(np.abs(qd[:1501]), 0), 1.875 * np.abs(points[1] - points[0]) / 1.5, rtol=1e-5
+    )
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        (dict(waypoints=[[0.0, 1.0]]), "shape"),
+        (dict(waypoints=[[0.0], [np.nan]]), "NaN"),
+        (dict(waypoints=[[0.0], [1.0]], times=[0.0, 1.0, 2.0]), "one arrival time"),
+        (dict(waypoints=[[0.0], [1.0]], times=[0.5, 1.0]), "start at 0"),
+        (dict(waypoints=[[0.0], [1.0], [2.0]], times=[0.0, 1.0, 1.0]), "increase strictly"),
+        (dict(waypoints=[[0.0], [1.0]], segment_time=-1.0), "segment_time"),
+        (dict(waypoints=[[0.0], [1.0]], dt=0.0), "dt"),
+    ],
+)
+def test_waypoint_trajectory_refuses_bad_input(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        rmijax.waypoint_trajectory(**kwargs)

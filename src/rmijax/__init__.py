@@ -52,6 +52,7 @@ from rmijax.robots.box import (
     monte_carlo_parameters as monte_carlo_parameters,
     uncertain_robot as uncertain_robot,
 )
+from rmijax.robots.loaders import SHIPPED as SHIPPED, load_robot as load_robot
 from rmijax.robots.model import GRAVITY as GRAVITY, RobotModel as RobotModel
 from rmijax.robots.planar import (
     paper_arm2 as paper_arm2,
@@ -66,6 +67,7 @@ from rmijax.trajectory import (
     Trajectory as Trajectory,
     trajectory as trajectory,
     trajectory_from_samples as trajectory_from_samples,
+    waypoint_trajectory as waypoint_trajectory,
 )
 
 __version__ = "0.1.0"
@@ -80,6 +82,7 @@ __all__ = [
     "METHODS",
     "MODES",
     "PATHS",
+    "SHIPPED",
     "SCALABLE_METHODS",
     "SEARCHES",
     "Bounds",
@@ -103,6 +106,7 @@ __all__ = [
     "empirical_thresholds",
     "estimate_memory",
     "experiments",
+    "load_robot",
     "monitor",
     "monte_carlo_parameters",
     "paper_arm2",
@@ -116,6 +120,7 @@ __all__ = [
     "trajectory",
     "trajectory_from_samples",
     "uncertain_robot",
+    "waypoint_trajectory",
     "worst_case",
     "worst_case_table",
 ]

@@ -13,7 +13,7 @@ import numpy as np
 from rmijax import _checks
 from rmijax.control import closed_loop_step, feedforward, servo_command
 
-__all__ = ["PATHS", "Trajectory", "trajectory", "trajectory_from_samples"]
+__all__ = ["PATHS", "Trajectory", "trajectory", "trajectory_from_samples", "waypoint_trajectory"]
 
 
 def _sine(t):
@@ -246,3 +246,92 @@ def trajectory(
                 f"scalar or one gain per joint"
             )
     return trajectory_from_samples(q_d, qd_d, qdd_d, dt=dt, kp=kp, kd=kd, labels=labels)
+
+
+def _minimum_jerk(tau):
+    """The rest-to-rest minimum-jerk profile ``s(tau) = 10 tau^3 - 15 tau^4 + 6 tau^5``
+    and its first two derivatives in ``tau`` (zero velocity and acceleration at both ends)."""
+    s = tau**3 * (10.0 + tau * (-15.0 + 6.0 * tau))
+    ds = 30.0 * tau**2 * (1.0 - tau) ** 2
+    dds = 60.0 * tau * (1.0 - tau) * (1.0 - 2.0 * tau)
+    return s, ds, dds
+
+
+def waypoint_trajectory(
+    waypoints,
+    *,
+    times=None,
+    segment_time: float = 2.0,
+    dt: float = 0.01,
+    kp=100.0,
+    kd=20.0,
+    dtype=None,
+) -> Trajectory:
+    """A smooth point-to-point move through joint-space waypoints (minimum jerk per segment).
+
+    Each segment goes from waypoint ``i`` at ``times[i]`` to waypoint ``i+1`` at
+    ``times[i+1]`` along the quintic ``q = q_i + (q_{i+1} - q_i) s(tau)``,
+    ``s = 10 tau^3 - 15 tau^4 + 6 tau^5``: it starts and stops at rest (zero
+    velocity and acceleration), as a pick-and-place move does. Repeat a
+    waypoint to dwell there. Velocities and accelerations are analytic.
+
+    Args:
+        waypoints: (W, n) joint positions in rad (rad or m for prismatic joints), W >= 2.
+        times: (W,) arrival times in s, strictly increasing from 0; default
+            ``segment_time`` per segment.
+        segment_time: s per segment when ``times`` is not given.
+        dt: the step in s; the run lasts ``times[-1]``.
+        kp, kd: gains, scalar or one per joint (the defaults are critically damped).
+        dtype: float dtype; default float64 when x64 is enabled, else float32.
+
+    Returns:
+        A :class:`Trajectory` of ``T = round(times[-1] / dt)`` steps.
+
+    Raises:
+        ValueError: waypoints not (W >= 2, n) or not finite; times not (W,),
+            not starting at 0 or not strictly increasing; a bad ``dt``.
+    """
+    dtype = dtype or _checks.default_float()
+    if not _checks.is_concrete(waypoints):
+        raise TypeError("waypoints must be concrete (build the trajectory outside jax.jit)")
+    points = np.asarray(waypoints, dtype=np.float64)
+    if points.ndim != 2 or points.shape[0] < 2:
+        raise ValueError(
+            f"waypoints must have shape (W, n) with W >= 2 points, got shape {points.shape}"
+        )
+    if not np.all(np.isfinite(points)):
+        raise ValueError("waypoints contain NaN or inf; give finite joint positions in rad")
+    if times is None:
+        if not (np.isfinite(segment_time) and segment_time > 0):
+            raise ValueError(f"segment_time must be a positive time in s, got {segment_time!r}")
+        times = float(segment_time) * np.arange(points.shape[0])
+    times = np.asarray(times, dtype=np.float64)
+    if times.shape != (points.shape[0],):
+        raise ValueError(
+            f"times has shape {times.shape} but there are {points.shape[0]} waypoints: "
+            "give one arrival time per waypoint"
+        )
+    if not np.all(np.isfinite(times)) or times[0] != 0.0 or np.any(np.diff(times) <= 0):
+        raise ValueError(
+            f"times must start at 0 and increase strictly (one arrival time per waypoint, "
+            f"in s), got {times.tolist()}"
+        )
+    dt = float(dt)
+    if not (np.isfinite(dt) and dt > 0):
+        raise ValueError(f"dt must be a positive finite step in s, got {dt!r}")
+    n_steps = int(round(times[-1] / dt))
+    if n_steps < 1:
+        raise ValueError(f"the move lasts {times[-1]!r} s, less than one step dt={dt!r} s")
+    t = np.arange(n_steps + 1) * dt
+    segment = np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(times) - 2)
+    length = times[segment + 1] - times[segment]
+    tau = np.clip((t - times[segment]) / length, 0.0, 1.0)
+    s, ds, dds = _minimum_jerk(tau)
+    delta = points[segment + 1] - points[segment]  # (T+1, n)
+    q_d = points[segment] + delta * s[:, None]
+    qd_d = delta * (ds / length)[:, None]
+    qdd_d = delta * (dds / length**2)[:, None]
+    labels = tuple(f"waypoints[{j}]" for j in range(points.shape[1]))
+    return trajectory_from_samples(
+        *(jnp.asarray(x, dtype) for x in (q_d, qd_d, qdd_d)), dt=dt, kp=kp, kd=kd, labels=labels
+    )

@@ -121,13 +121,14 @@ def structured_pick(base, span, offset, enumerated, affine):
     """
     gain = jnp.maximum(span, 0.0)
     loss = jnp.minimum(span, 0.0)
-    best = base + jnp.sum(gain, axis=1)
+    remaining = jnp.sum(gain, axis=1)
+    best = base + remaining
     worst = base + jnp.sum(loss, axis=1)
     scale = jnp.maximum(jnp.max(jnp.abs(best)), jnp.max(jnp.abs(worst)))
     threshold = jnp.max(best) - tie_tolerance(scale, offset)
     n_enum = len(enumerated)
     e_bits = (np.arange(2**n_enum)[:, None] >> np.arange(n_enum)[None, :]) & 1  # (E, p_e)
-    fixed, remaining = base, jnp.sum(gain, axis=1)
+    fixed = base
     alive = jnp.ones(base.shape, bool)
     a_bits = [None] * len(affine)
     order = [(b, "e", k) for k, b in enumerate(enumerated)]
@@ -182,8 +183,8 @@ class StructuredChooser:
         lo, hi = consts["lo"], consts["hi"]
         enum = np.asarray(self.enumerated, int)
         bits = (np.arange(2**enum.size)[:, None] >> np.arange(enum.size)[None, :]) & 1
-        chosen = jnp.where(jnp.asarray(bits == 1), hi[enum], lo[enum])
-        return jnp.broadcast_to(lo, (bits.shape[0], lo.shape[0])).at[:, enum].set(chosen)
+        chosen = jnp.where(jnp.asarray(bits == 1), hi[enum][None, :], lo[enum][None, :])
+        return jnp.broadcast_to(lo[None, :], (bits.shape[0], lo.shape[0])).at[:, enum].set(chosen)
 
     def _assemble(self, corners, e, a_bits, consts):
         affine = np.asarray(self.affine, int)
@@ -203,7 +204,7 @@ class StructuredChooser:
             return along(th[affine]), jax.jacfwd(along)(th[affine])
 
         base, coef = jax.vmap(score_and_slope)(corners)
-        span = coef * (consts["hi"][affine] - consts["lo"][affine])
+        span = coef * (consts["hi"][affine] - consts["lo"][affine])[None, :]
         e, a_bits = structured_pick(base, span, offset, self.enumerated, self.affine)
         return self._assemble(corners, e, a_bits, consts)
 
@@ -227,17 +228,25 @@ class LinearChooser(StructuredChooser):
 
     def coupled(self, q, qd, tau, v, onehot, weight, offset, consts):
         corners = self._corners(consts)  # (E, p)
+        enum, affine = np.asarray(self.enumerated, int), np.asarray(self.affine, int)
         m0, m_terms, h0, h_terms = self.terms(q, qd)
         n = q.shape[0]
-        mass = m0[None] + jnp.einsum("ep,pij->eij", corners, m_terms)  # (E, n, n)
-        bias = h0[None] + corners @ h_terms  # (E, n)
-        lower, _, inv_diag = ldl_factor([[mass[:, a, b] for b in range(a + 1)] for a in range(n)])
-        rhs = [jnp.broadcast_to(onehot[a], mass.shape[:1]) for a in range(n)]
+        rows, cols = np.tril_indices(n)
+        # only the enumerated parameters enter M; the affine ones sit at lo in every corner
+        lower_terms = m_terms[enum][:, rows, cols]  # (p_e, n(n+1)/2)
+        packed = m0[rows, cols][None, :] + corners[:, enum] @ lower_terms  # (E, n(n+1)/2)
+        index = {(a, b): k for k, (a, b) in enumerate(zip(rows, cols, strict=True))}
+        lower, _, inv_diag = ldl_factor(
+            [[packed[:, index[a, b]] for b in range(a + 1)] for a in range(n)]
+        )
+        rhs = [jnp.broadcast_to(onehot[a], packed.shape[:1]) for a in range(n)]
         row = jnp.stack(ldl_solve(lower, inv_diag, rhs), axis=-1)  # (E, n): M^-1 e_i
-        base = weight * (jnp.sum(row * (tau[None] - bias), axis=-1) - jnp.dot(onehot, v))
-        affine = np.asarray(self.affine, int)
+        bias = (h0 + consts["lo"][affine] @ h_terms[affine])[None, :] + corners[:, enum] @ h_terms[
+            enum
+        ]
+        base = weight * (jnp.sum(row * (tau[None, :] - bias), axis=-1) - jnp.dot(onehot, v))
         coef = -weight * (row @ h_terms[affine].T)  # (E, a)
-        span = coef * (consts["hi"][affine] - consts["lo"][affine])
+        span = coef * (consts["hi"][affine] - consts["lo"][affine])[None, :]
         e, a_bits = structured_pick(base, span, offset, self.enumerated, self.affine)
         return self._assemble(corners, e, a_bits, consts)
 
