@@ -173,6 +173,27 @@ def precision_table():
     return _table(header, rows)
 
 
+def paper_containment():
+    """Containment of the paper runs' bands (the main job's report)."""
+    report = _load("paper_cpu.json")["results"]
+    rows = []
+    for run, table in report["containment"].items():
+        cells = []
+        for name in ("rmi_coupled", "constant"):
+            c = table[name]
+            cells.append(
+                f"{_pct(c['inside'], 2)}, {_pct(c['clean_runs'])}, {100 * c['worst']:.2g}%"
+            )
+        rows.append((run, table["rmi_coupled"]["runs"], *cells))
+    header = (
+        "paper run",
+        "runs (corners + draws)",
+        "RMI coupled: samples inside, runs clean, worst",
+        "constant thresholds: same",
+    )
+    return _table(header, rows)
+
+
 def _cases():
     return {c["case"]: c for c in _load("methods_cpu.json")["results"]["cases"]}
 
@@ -290,7 +311,11 @@ def provenance():
 
 
 BLOCKS = {
-    "README.md": {"scaling": readme_scaling, "methods": readme_methods},
+    "README.md": {
+        "paper": paper_containment,
+        "scaling": readme_scaling,
+        "methods": readme_methods,
+    },
     "benchmarks/README.md": {
         "provenance": provenance,
         "scaling-full": scaling_full,
