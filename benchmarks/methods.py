@@ -16,7 +16,7 @@ Cases (``--cases``, default all):
   onset at 2 s), 100 draws and a lighter worst-case search (one time, 3.9 s;
   the Monte-Carlo extremes as starts, 10 iterations), and ``corner_search`` timed
   on single end steps only (``--corner-search-cost``; a whole run would take
-  hours: 7 s per end step at 16 links, 5 min at 32).
+  hours; ``benchmarks/results/methods_16.json`` has the 16-link figure).
 
 The true robot of the fault runs is the paper's (masses x1.08, lengths -5 mm).
 For each case and method: band width over the worst-case range
@@ -200,7 +200,7 @@ def main(argv=None):
         type=int,
         default=[16],
         help="link counts (16 or 32) where corner_search is timed on single end steps "
-        "(about 5 min per end step at 32)",
+        "(no 32-link run has finished)",
     )
     parser.add_argument("--draws", type=int, default=1000, help="uniform Monte-Carlo draws")
     parser.add_argument("--json", help="write the results here")

@@ -10,11 +10,11 @@ plots and the comparison treat them alike. The definitions are in
 - ``short_window``: RMI over a few steps (default 2) from the *measured*
   state; needs ``readings``.
 - ``corner_search``: RMI with the extreme corner searched (gradient sign, then
-  single-bit flips) instead of enumerated; scales to 32 links.
+  single-bit flips) instead of enumerated; cost polynomial in the links.
 - ``constant_corners``: the envelope of the closed loop run once per corner
   held constant (the physical robot has constant parameters).
 - ``linearized``: first-order parameter sensitivity of the windowed closed
-  loop, plus a remainder margin; scales to 32 links.
+  loop, plus a remainder margin; cost polynomial in the links.
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ METHODS = ("rmi", "empirical", "short_window", "corner_search", "constant_corner
 """Names accepted by :func:`bounds`."""
 
 SCALABLE_METHODS = ("empirical", "corner_search", "linearized")
-"""Methods whose cost does not grow like ``2^p``: they run at 16 and 32 links."""
+"""Methods whose cost does not grow like ``2^p`` (the comparison ran them at 16 links)."""
 
 DEFAULT_WINDOWS = {
     "rmi": 100,

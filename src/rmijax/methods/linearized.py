@@ -26,7 +26,7 @@ and the second-order remainder elsewhere in the box can exceed the one
 measured at ``th*``. Cost per end step: one nominal track, ``p`` tangent
 tracks and (with the margin) ``4n`` corner runs over the window, i.e.
 ``O(p + n)`` tracks of dimension ``2n`` instead of RMI's ``2^p`` corners
-per step, so it runs at 16 and 32 links.
+per step, so its cost is polynomial in the links.
 """
 
 from __future__ import annotations
