@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import datetime
 import json
 import os
 import platform
 import resource
+import shlex
+import subprocess
+import sys
 import time
 
 import numpy as np
@@ -55,6 +59,60 @@ def device():
     dev = jax.devices()[0]
     cpu = platform.processor() or platform.machine()
     return f"{dev.platform}:{dev.device_kind} ({os.cpu_count()} cores, {cpu})"
+
+
+def run_meta(script, argv=None, *, dtype):
+    """What a results file needs to be reproduced: command, commit, date, machine, dtype.
+
+    ``command`` is the exact command line that wrote the file (run from the repository
+    root); ``commit`` the git HEAD of the code that ran, with ``+dirty`` when the work
+    tree had uncommitted changes to tracked files; ``load_avg`` the machine's load when
+    the run ended.
+    """
+    import jax
+
+    argv = sys.argv[1:] if argv is None else list(argv)
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    try:
+        commit = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, check=True
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"],
+            cwd=root,
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
+        commit += "+dirty" if dirty else ""
+    except (OSError, subprocess.CalledProcessError):
+        commit = "unknown"
+    return {
+        "command": " ".join(["python", script] + [shlex.quote(a) for a in argv]),
+        "commit": commit,
+        "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "device": device(),
+        "machine": _machine(),
+        "dtype": dtype,
+        "jax": jax.__version__,
+        # 1, 5 and 15 min load averages when the run ended: on a shared machine a
+        # load above the core count means other jobs took time from the timed one.
+        "load_avg": [round(x, 2) for x in os.getloadavg()],
+    }
+
+
+def _machine():
+    """CPU model, architecture and core count (no host name)."""
+    model = platform.processor() or ""
+    try:
+        with open("/proc/cpuinfo") as handle:
+            for line in handle:
+                if line.startswith("model name"):
+                    model = line.split(":", 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    return f"{model or 'unknown CPU'}, {platform.machine()}, {os.cpu_count()} cores"
 
 
 def write_json(path, records, meta):

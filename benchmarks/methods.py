@@ -43,7 +43,7 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(pathlib.Path(__file__).parent))
 
-from _common import device, markdown_table, read_json, write_json  # noqa: E402
+from _common import markdown_table, read_json, run_meta, write_json  # noqa: E402
 
 import rmijax  # noqa: E402
 from rmijax.apps.experiments import paper_run, paper_true_parameters  # noqa: E402
@@ -217,18 +217,19 @@ def main(argv=None):
         print(message, flush=True)
 
     if args.from_json:
-        results, agreement, costs, commands = [], [], [], []
+        results, agreement, costs, sources = [], [], [], {}
         for path in args.from_json:
-            records, meta = read_json(path)
+            records, piece = read_json(path)
             results += records["cases"]
             agreement += records["agreement"]
             costs += records["step_costs"]
-            commands.append(meta["command"])
-        meta = {**meta, "command": " && ".join(commands)}
+            sources[path] = piece
+        # the merge's own command, and each piece's meta (its command reproduces it)
+        meta = {**run_meta("benchmarks/methods.py", argv, dtype="float64"), "sources": sources}
         write_json(args.json, {"cases": results, "agreement": agreement, "step_costs": costs}, meta)
     else:
         results, costs, agreement = [], [], []
-        meta = {"device": device(), "command": " ".join(sys.argv), "dtype": "float64"}
+        meta = run_meta("benchmarks/methods.py", argv, dtype="float64")
 
         def save():
             records = {"cases": results, "agreement": agreement, "step_costs": costs}

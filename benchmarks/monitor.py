@@ -16,8 +16,8 @@ import time
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
 from _common import (  # noqa: E402
     REAL_TIME_BUDGET_S,
-    device,
     peak_rss_mb,
+    run_meta,
     table,
     time_calls,
     write_json,
@@ -99,7 +99,7 @@ def main(argv=None):
             else table(records, COLUMNS),
             flush=True,
         )
-    meta = {"device": device(), "script": "benchmarks/monitor.py", "args": vars(args)}
+    meta = {**run_meta("benchmarks/monitor.py", argv, dtype=args.dtype), "args": vars(args)}
     write_json(args.json, records, meta)
     print(f"device: {meta['device']}; budget_ratio = p50 / 1 ms (below 1: real time at 1 kHz)")
 

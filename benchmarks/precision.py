@@ -16,7 +16,7 @@ import sys
 
 HERE = pathlib.Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from _common import device, table, write_json  # noqa: E402
+from _common import run_meta, table, write_json  # noqa: E402
 
 CASES = [
     (2, ("hold", "sine"), 15.0),
@@ -79,7 +79,8 @@ def main(argv=None):
             records.append(measure(n, paths, duration, mode))
             lines = table(records, COLUMNS).splitlines()
             print("\n".join(lines if len(records) == 1 else lines[-1:]), flush=True)
-    write_json(args.json, records, {"device": device(), "script": "benchmarks/precision.py"})
+    meta = run_meta("benchmarks/precision.py", argv, dtype="float32 against float64")
+    write_json(args.json, records, meta)
     print("error: |float32 - float64| over the widest float64 band of the output")
 
 

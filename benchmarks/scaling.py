@@ -31,10 +31,10 @@ HERE = pathlib.Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 from _common import (  # noqa: E402
     REAL_TIME_BUDGET_S,
-    device,
     markdown_table,
     peak_rss_mb,
     read_json,
+    run_meta,
     table,
     time_calls,
     write_json,
@@ -343,12 +343,8 @@ def main(argv=None):
                 records.append(measure(n, mode, dtype, args))
                 lines = table(records, COLUMNS).splitlines()
                 print("\n".join(lines if len(records) == 1 else lines[-1:]), flush=True)
-    meta = {
-        "device": device(),
-        "jax": jax.__version__,
-        "script": "benchmarks/scaling.py",
-        "args": vars(args),
-    }
+    dtype = "float64" if dtypes == ["float64"] else "float32" if dtypes == ["float32"] else "both"
+    meta = {**run_meta("benchmarks/scaling.py", argv, dtype=dtype), "args": vars(args)}
     write_json(args.json, records, meta)
     if args.markdown:
         print(markdown_table(records, COLUMNS))

@@ -93,7 +93,7 @@ def test_paper_stuck_sensors_joint1_seen_through_joint2(paper):
     # readings stay inside its own band; its true state leaves within ~0.6 s.
     assert report.alarm_output == (1, 0)
     assert 1.0 <= report.latency <= 3.0
-    assert not report.alarms[:, 0, :].any() or report.alarms[:, 0, :].argmax() > 0
+    assert not report.alarms[:, 0, :].any()  # joint 1's own readings never leave its band
     assert report.true_exit is not None and report.true_exit - 3.0 <= 0.8
     assert report.true_exit_output[0] == 0
 

@@ -1,0 +1,66 @@
+"""The published tables are the results files: documents match benchmarks/report.py."""
+
+import importlib.util
+import pathlib
+import shutil
+
+import pytest
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+
+
+def _report():
+    spec = importlib.util.spec_from_file_location("report", ROOT / "benchmarks" / "report.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+report = _report()
+
+
+def test_documents_match_results():
+    """Every generated table of the README, the benchmark notes, the method docs and the
+    comparison's conclusions (and the notebook cell that shows them) is what
+    ``python benchmarks/report.py`` renders from ``benchmarks/results/*.json``."""
+    diffs = report.differences()
+    assert not diffs, "run `python benchmarks/report.py`:\n" + "\n".join(diffs)[:6000]
+
+
+def _copy_documents(tmp_path):
+    for document in [*report.BLOCKS, report.NOTEBOOK]:
+        target = tmp_path / document
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(ROOT / document, target)
+
+
+def test_a_doctored_table_is_caught(tmp_path):
+    _copy_documents(tmp_path)
+    assert report.differences(tmp_path) == []
+    readme = tmp_path / "README.md"
+    text = readme.read_text()
+    start = text.index("<!-- report:scaling ")
+    row = text.index("| 2 | 16 |", start)  # the 2-link row of the generated scaling table
+    end = text.index("\n", row)
+    doctored = text[:row] + text[row:end].replace("1 kHz", "2 kHz") + text[end:]
+    assert doctored != text
+    readme.write_text(doctored)
+    diffs = report.differences(tmp_path)
+    assert len(diffs) == 1 and "README.md (committed)" in diffs[0] and "2 kHz" in diffs[0]
+
+
+def test_a_block_without_markers_is_refused(tmp_path):
+    _copy_documents(tmp_path)
+    readme = tmp_path / "README.md"
+    readme.write_text(readme.read_text().replace("<!-- report:methods ", "<!-- methods "))
+    with pytest.raises(ValueError, match="no markers for generated block"):
+        report.differences(tmp_path)
+
+
+@pytest.mark.parametrize(
+    "p99_ms, rate",
+    [(0.112, "1 kHz"), (0.999, "1 kHz"), (1.0, "500 Hz"), (5.6, "100 Hz"), (33.7, "20 Hz"),
+     (339.3, "2 Hz"), (1000.0, "below 1 Hz")],
+)  # fmt: skip
+def test_real_time_rate_is_the_highest_whose_tick_exceeds_p99(p99_ms, rate):
+    assert report.real_time_rate(p99_ms) == rate
