@@ -324,7 +324,7 @@ def small():
         (dict(noise_lo=0.1, noise_hi=0.0), ValueError, "noise_lo > noise_hi for joint 0"),
         (dict(noise_hi=[0.0, np.inf]), ValueError, "noise_hi contains a non-finite"),
         (dict(memory_budget=10_000), rmijax.ProblemTooLargeError, "even at chunk size 1"),
-        (dict(chunk_size=0), ValueError, "chunk_size must be >= 1"),
+        (dict(chunk_size=0), ValueError, "chunk_size must be an integer number of end steps >= 1"),
     ],
 )
 def test_bad_arguments(small, kwargs, error, match):

@@ -158,7 +158,8 @@ def monitor(
     window = _checks.positive_int("window", window, "ticks")
     persistence = _checks.positive_int("persistence", persistence)
     tol = _checks.tolerance(tol)
-    n, dtype, dt = params.n_joints, params.dtype, float(dt)
+    n, dtype = params.n_joints, params.dtype
+    dt = _checks.real("dt", dt, positive=True, unit="s")
     kp = _checks.per_joint("kp", kp, n, dtype)
     kd = _checks.per_joint("kd", kd, n, dtype)
     _checks.check_stable(kp, kd, dt)

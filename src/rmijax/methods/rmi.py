@@ -161,6 +161,8 @@ def check_memory(
 
 
 def _batch_size(params, mode, window, dtype, budget, n_end_steps, chunk_size, *, search="auto"):
+    budget = _checks.memory_budget(budget)
+    chunk_size = _checks.chunk_size(chunk_size, "end steps")
     per_end_step = estimate_memory(params, mode=mode, window=window, dtype=dtype, search=search)
     if per_end_step > budget:
         raise ProblemTooLargeError(
@@ -171,9 +173,7 @@ def _batch_size(params, mode, window, dtype, budget, n_end_steps, chunk_size, *,
             "certain (lo == hi) to shrink the box."
         )
     if chunk_size is not None:
-        if int(chunk_size) < 1:
-            raise ValueError(f"chunk_size must be >= 1, got {chunk_size!r}")
-        if int(chunk_size) * per_end_step > budget:
+        if chunk_size * per_end_step > budget:
             raise ProblemTooLargeError(
                 f"chunk_size={chunk_size} needs about "
                 f"{int(chunk_size) * per_end_step / 2**30:.2f} GiB, over memory_budget "
@@ -559,6 +559,7 @@ def _rmi_from_starts(
     Returns:
         :class:`Bounds` (T+1, n, 2), not yet checked (:func:`_check_result`).
     """
+    progress = _checks.boolean("progress", progress)
     n_end = traj.n_steps + 1
     batch = _batch_size(
         params, mode, window, traj.dtype, memory_budget, n_end, chunk_size, search=search
