@@ -349,7 +349,7 @@ def test_bad_inputs(small):
         rmijax.rmi(unstable, params)
     with pytest.raises(ValueError, match=r"t_f=51 is outside .*\[0, 50\]"):
         rmijax.rmi_step(traj, params, 51)
-    with pytest.raises(ValueError, match="t_f must be an integer"):
+    with pytest.raises(TypeError, match="t_f must be an integer"):
         rmijax.rmi_step(traj, params, 3.5)
 
 
