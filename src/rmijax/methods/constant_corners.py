@@ -181,8 +181,7 @@ def _validate(traj, params, horizon, window, noise_lo, noise_hi, chunk_size):
     if horizon not in HORIZONS:
         raise ValueError(f"unknown horizon {horizon!r}; choose one of {HORIZONS}")
     window = _checks.positive_int("window", window, "steps")
-    if chunk_size is not None:
-        chunk_size = _checks.positive_int("chunk_size", chunk_size, "corners")
+    chunk_size = _checks.chunk_size(chunk_size, "corners")
     n = traj.n_joints
     if params.n_joints != n:
         raise ValueError(
@@ -280,6 +279,7 @@ def constant_corner_bounds(
     dtype, window, chunk_size, lo, hi = _validate(
         traj, params, horizon, window, noise_lo, noise_hi, chunk_size
     )
+    progress = _checks.boolean("progress", progress)
     traj, params = _checks.cast_tree(traj, dtype), _checks.cast_tree(params, dtype)
     tables = _fault_tables((), traj.n_joints, traj.n_steps, traj.dt, dtype)
     size, n_chunks, batch = _chunking(traj, params, horizon, chunk_size, jnp.dtype(dtype).itemsize)

@@ -161,6 +161,8 @@ def check_memory(
 
 
 def _batch_size(params, mode, window, dtype, budget, n_end_steps, chunk_size, *, search="auto"):
+    budget = _checks.memory_budget(budget)
+    chunk_size = _checks.chunk_size(chunk_size, "end steps")
     per_end_step = estimate_memory(params, mode=mode, window=window, dtype=dtype, search=search)
     if per_end_step > budget:
         raise ProblemTooLargeError(
@@ -171,9 +173,7 @@ def _batch_size(params, mode, window, dtype, budget, n_end_steps, chunk_size, *,
             "certain (lo == hi) to shrink the box."
         )
     if chunk_size is not None:
-        if int(chunk_size) < 1:
-            raise ValueError(f"chunk_size must be >= 1, got {chunk_size!r}")
-        if int(chunk_size) * per_end_step > budget:
+        if chunk_size * per_end_step > budget:
             raise ProblemTooLargeError(
                 f"chunk_size={chunk_size} needs about "
                 f"{int(chunk_size) * per_end_step / 2**30:.2f} GiB, over memory_budget "
@@ -559,6 +559,7 @@ def _rmi_from_starts(
     Returns:
         :class:`Bounds` (T+1, n, 2), not yet checked (:func:`_check_result`).
     """
+    progress = _checks.boolean("progress", progress)
     n_end = traj.n_steps + 1
     batch = _batch_size(
         params, mode, window, traj.dtype, memory_budget, n_end, chunk_size, search=search
@@ -608,6 +609,39 @@ def _rmi_with_progress(traj, params, lo, hi, mode, window, batch, search, starts
     return _assemble(extremes, traj.x_n, lo, hi, traj.dt)
 
 
+def _end_step(t_f, n_steps):
+    """``t_f`` as an int32 scalar in ``[0, T]``: integer types only, never wrapped.
+
+    The dtype is known even under ``jit``, so a float or bool ``t_f`` is
+    refused at trace time (truncating 2.5 to 2 would silently answer for
+    another step). A traced integer is clipped into ``[0, T]`` in its own
+    dtype before the cast to int32, so an int64 beyond the int32 range lands
+    on ``T``, not on a wrapped-around step.
+    """
+    dtype = getattr(t_f, "dtype", None)
+    if isinstance(t_f, (bool, np.bool_)) or (dtype is not None and dtype == np.bool_):
+        raise TypeError(f"t_f must be an integer end step, got the bool {t_f!r}")
+    if dtype is None and not isinstance(t_f, int):
+        raise TypeError(
+            f"t_f must be an integer end step (0 <= t_f <= T), got {t_f!r} of type "
+            f"{type(t_f).__name__}"
+        )
+    if dtype is not None and not jnp.issubdtype(dtype, jnp.integer):
+        raise TypeError(
+            f"t_f must be an integer end step, got dtype {dtype}; a float step would be "
+            "truncated to another step. Pass an int (e.g. jnp.int32(k)) or round it yourself"
+        )
+    if np.ndim(t_f) != 0:
+        raise ValueError(f"t_f must be a scalar end step, got shape {np.shape(t_f)}")
+    if _checks.is_concrete(t_f):
+        if not 0 <= int(t_f) <= n_steps:
+            raise ValueError(
+                f"t_f={int(t_f)} is outside the trajectory's end steps [0, {n_steps}]"
+            )
+        return jnp.asarray(int(t_f), jnp.int32)
+    return jnp.clip(t_f, 0, n_steps).astype(jnp.int32)
+
+
 def rmi_step(
     traj: Trajectory,
     params: UncertainRobot,
@@ -623,8 +657,9 @@ def rmi_step(
 
     ``t_f`` may be a Python int or a traced integer: under the user's
     ``jax.jit`` the same compiled step serves every ``t_f`` without retracing.
-    A traced ``t_f`` outside ``[0, T]`` is clipped into it. The other
-    arguments are those of :func:`rmi`.
+    A traced ``t_f`` outside ``[0, T]`` is clipped into it (in its own dtype,
+    so a large int64 never wraps to another step); a float or bool ``t_f``
+    is refused, traced or not. The other arguments are those of :func:`rmi`.
 
     Returns:
         :class:`Bounds` with ``lower``, ``upper``, ``nominal``, ``crossed`` of
@@ -632,15 +667,8 @@ def rmi_step(
     """
     dtype, lo, hi = _validate(traj, params, mode, window, noise_lo, noise_hi, search)
     traj, params = _cast(traj, params, dtype)
-    if _checks.is_concrete(t_f):
-        if np.ndim(t_f) != 0 or not float(t_f).is_integer():
-            raise ValueError(f"t_f must be an integer end step, got {t_f!r}")
-        if not 0 <= int(t_f) <= traj.n_steps:
-            raise ValueError(
-                f"t_f={int(t_f)} is outside the trajectory's end steps [0, {traj.n_steps}]"
-            )
+    t_f = _end_step(t_f, traj.n_steps)
     check_memory(params, mode=mode, window=window, dtype=dtype, search=search)
-    t_f = jnp.clip(jnp.asarray(t_f, jnp.int32), 0, traj.n_steps)
     bounds = _rmi_one(traj, params, t_f, lo, hi, mode=mode, window=int(window), search=search)
     _check_result(bounds)
     return bounds

@@ -100,6 +100,11 @@ def uncertain_robot(model: RobotModel, nominal, lo, hi, *, dtype=None) -> Uncert
         ValueError: on shape mismatches, NaN/inf, ``lo > hi`` or a nominal
             outside its box; the message names the argument and the fix.
     """
+    if not isinstance(model, RobotModel):
+        raise TypeError(
+            f"model must be a rmijax.RobotModel (its mass_matrix and bias functions), got "
+            f"{type(model).__name__}"
+        )
     names = model.param_names or tuple(f"th[{b}]" for b in range(model.n_params))
     arrays = {}
     for label, value in (("nominal", nominal), ("lo", lo), ("hi", hi)):
@@ -134,7 +139,9 @@ def monte_carlo_parameters(
     Returns:
         (K + draws, p) or (draws, p) array.
     """
-    rng = np.random.default_rng(seed)
+    draws = _checks.integer("draws", draws, minimum=0)
+    rng = np.random.default_rng(_checks.seed(seed))
+    corners = _checks.boolean("corners", corners)
     lo, hi = np.asarray(params.lo, np.float64), np.asarray(params.hi, np.float64)
     uniform = lo + (hi - lo) * rng.uniform(size=(int(draws), lo.size))
     if not corners:
