@@ -337,8 +337,9 @@ def assemble(
     for key in ("q_d", "qd_d", "qdd_d"):
         if key in series and not np.all(np.isfinite(series[key])):
             sample, joint = (int(v) for v in np.argwhere(~np.isfinite(series[key]))[0])
+            value = float(series[key][sample, joint])
             raise LogError(
-                f"the reference {key} of joint {names[joint]!r} is {series[key][sample, joint]!r} "
+                f"the reference {key} of joint {names[joint]!r} is {value} "
                 f"at {ref_t[sample]:.6g} s: the controller's reference must be complete "
                 "(a NaN *reading* is kept and alarms; a NaN reference has no meaning)"
             )
