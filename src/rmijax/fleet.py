@@ -11,9 +11,10 @@ different lengths are padded at the end to the longest: RMI's end step ``t_f``
 and the plant's step ``k`` depend on the past alone, so the padding changes no
 kept sample. :func:`rmi_sharded` shards the end steps of one long run instead.
 
-Across hosts: start every process with ``jax.distributed.initialize()`` (see
-``docs/fleet.md``); :func:`device_mesh` then spans every device of every host,
-every process passes the same inputs and gets the whole result back. For
+Across hosts: start every process with ``jax.distributed.initialize()`` (the
+README's "Fleet scale" section shows the launch); :func:`device_mesh` then
+spans every device of every host, every process passes the same inputs and
+gets the whole result back. For
 folders of logs it is cheaper to let each process take its own logs
 (:func:`my_share`) on its local devices, which is what ``rmijax check`` does.
 """
@@ -276,28 +277,43 @@ def rmi_sharded(
     memory_budget: int = _engine.DEFAULT_MEMORY_BUDGET,
     chunk_size: int | None = None,
     search: str = "auto",
+    progress: bool = False,
 ) -> Bounds:
     """:func:`rmijax.rmi` of one long run, its end steps split across the devices of ``mesh``.
 
     End steps are independent windows; each device computes a contiguous share.
-    Arguments as :func:`rmi_batch`. Returns :class:`~rmijax.Bounds` (T+1, n, 2), NumPy.
+    Arguments as :func:`rmi_batch`; ``progress=True`` computes slices of
+    ``devices x chunk`` end steps one after another under a progress bar.
+    Returns :class:`~rmijax.Bounds` (T+1, n, 2), NumPy.
     """
     dtype, lo, hi = _engine._validate(traj, params, mode, window, noise_lo, noise_hi, search)
     traj, params = _engine._cast(traj, params, dtype)
     mesh = device_mesh() if mesh is None else mesh
     n_end = traj.n_steps + 1
     batch = _per_device_batch(params, mode, window, dtype, memory_budget, n_end, 1, chunk_size)
-    padded = math.ceil(n_end / mesh.size) * mesh.size
-    end_steps = np.minimum(np.arange(padded), n_end - 1).astype(np.int32)
-    placed = _place(end_steps, mesh, P(AXIS))
+    # one slice: ``batch`` end steps per device; the whole run when no progress is shown
+    piece = mesh.size * batch if progress else math.ceil(n_end / mesh.size) * mesh.size
+    n_pieces = math.ceil(n_end / piece)
     shared = _place((traj, params), mesh, P())
     static = dict(mode=mode, window=int(window), batch=batch, search=search)
     program = _shard_end_steps(mesh, tuple(sorted(static.items())))
-    extremes = _gather(program(placed, shared))[:n_end]
+    pieces = []
+    with _progress_bar(progress, n_end, f"RMI {mode} n={traj.n_joints}") as bar:
+        for index in range(n_pieces):
+            ends = np.minimum(np.arange(index * piece, (index + 1) * piece), n_end - 1)
+            pieces.append(_gather(program(_place(ends.astype(np.int32), mesh, P(AXIS)), shared)))
+            bar.update(min(piece, n_end - index * piece))
+    extremes = np.concatenate(pieces, axis=0)[:n_end]
     bounds = _engine._assemble(jnp.asarray(extremes), traj.x_n, lo, hi, traj.dt)
     bounds = jax.tree_util.tree_map(np.asarray, bounds)
     _engine._check_result(bounds)
     return bounds
+
+
+def _progress_bar(show, total, desc):
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, desc=desc, unit="step", disable=not show)
 
 
 @functools.lru_cache(maxsize=64)
