@@ -51,11 +51,13 @@ def test_one_log_report(logs, tmp_path, capsys):
     assert "First alarm at 0.50 s" in (out / "report.md").read_text()
     assert (out / "bands.png").stat().st_size > 10_000
     assert "first alarm 0.50 s on joint2 tachometer" in capsys.readouterr().out
+    assert "![bands](bands.png)" in (out / "report.md").read_text()
 
 
 def test_folder_reports_every_log_and_resumes(logs, tmp_path, capsys):
     out = tmp_path / "many"
     args = ["check", str(logs), "--robot", "paper_arm2", "--out", str(out), "--no-progress"]
+    args += ["--no-figures"]
     assert cli.main(args) == 0
     summary = {row["log"]: row for row in json.loads((out / "summary.json").read_text())["logs"]}
     assert summary["stuck.csv"]["first_alarm_s"] == 0.5

@@ -78,9 +78,13 @@ def _parser():
     parser.add_argument(
         "--distributed",
         action="store_true",
-        help="multi-host: call jax.distributed.initialize() (configured from the "
-        "environment) and take this process's share of the logs",
+        help="multi-host: call jax.distributed.initialize() and take this process's share "
+        "of the logs (on SLURM/Open MPI/Kubernetes the three options below are detected)",
     )
+    parser.add_argument("--coordinator", default=None, help="host:port of process 0")
+    parser.add_argument("--num-processes", type=int, default=None, help="processes in the job")
+    parser.add_argument("--process-id", type=int, default=None, help="this process, 0-based")
+    parser.add_argument("--no-figures", action="store_true", help="no bands.png (faster)")
     parser.add_argument("--float32", action="store_true", help="compute in float32")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     return parser
@@ -300,7 +304,9 @@ def _markdown(report):
         lines.append(f"Not used: {', '.join(source['ignored'])}.")
     if source.get("topics"):
         lines.append(f"Topics: {source['topics']['readings']}, {source['topics']['reference']}.")
-    lines += ["", "![bands](bands.png)", ""]
+    if report.get("figure"):
+        lines += ["", f"![bands]({report['figure']})"]
+    lines.append("")
     return "\n".join(lines)
 
 
@@ -339,10 +345,12 @@ def _figure(log, bounds, report, path):
     save_figure(fig, path)
 
 
-def _write(out, log, bounds, report):
+def _write(out, log, bounds, report, figure=True):
     out.mkdir(parents=True, exist_ok=True)
-    _figure(log, bounds, report, out / "bands.png")
-    report["figure"] = "bands.png"
+    report["figure"] = None
+    if figure:
+        _figure(log, bounds, report, out / "bands.png")
+        report["figure"] = "bands.png"
     (out / "report.md").write_text(_markdown(report))
     (out / "report.json").write_text(json.dumps(report, indent=2))
 
@@ -397,9 +405,14 @@ def main(argv=None) -> int:
 
         if not args.float32:
             jax.config.update("jax_enable_x64", True)  # the CLI's choice, not the library's
-        if args.distributed:
-            jax.distributed.initialize()
+        cluster = (args.coordinator, args.num_processes, args.process_id)
+        if any(v is not None for v in cluster) and not args.distributed:
+            raise _Refused("--coordinator/--num-processes/--process-id need --distributed")
         params, paths, folder = _validate(args)
+        if args.distributed:
+            if not folder:
+                raise _Refused("--distributed shares a folder of logs between processes")
+            jax.distributed.initialize(*cluster)
         devices = jax.local_devices()
         if args.devices is not None and args.devices > len(devices):
             raise _Refused(f"--devices {args.devices}: this process has {len(devices)} devices")
@@ -452,14 +465,14 @@ def main(argv=None) -> int:
         (bounds,) = _bands([log], params, args, mesh)
         report = check_log(log, bounds, persistence=args.persistence, tol=args.tol)
         report["settings"] = settings
-        _write(out, log, bounds, report)
+        _write(out, log, bounds, report, figure=not args.no_figures)
         first = report["first_alarm"]
         what = (
             "no alarm"
             if first is None
             else (f"first alarm {first['time_s']:.2f} s on {first['output']}")
         )
-        print(f"{paths[0].name}: {what}; wrote {out}/report.md, report.json, bands.png")
+        print(f"{paths[0].name}: {what}; wrote report.md and report.json to {out}")
         return 0
 
     mine = fleet.my_share(paths) if args.distributed else paths
@@ -487,17 +500,18 @@ def main(argv=None) -> int:
             for (path, log), bounds in zip(logs, all_bounds, strict=True):
                 report = check_log(log, bounds, persistence=args.persistence, tol=args.tol)
                 report["settings"] = settings
-                _write(out / path.stem, log, bounds, report)
+                _write(out / path.stem, log, bounds, report, figure=not args.no_figures)
                 counts["reported"] += 1
                 counts["alarm"] += bool(report["alarm"])
                 bar.update(1)
     elapsed = time.perf_counter() - started
     summary = _summary(out, mine)
-    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    name = "summary.json" if jax.process_count() == 1 else f"summary.{jax.process_index()}.json"
+    (out / name).write_text(json.dumps(summary, indent=2))
     print(
         f"{counts['reported']} logs reported ({counts['alarm']} with alarms), "
         f"{counts['unreadable']} unreadable, {counts['skipped']} already reported; "
-        f"{elapsed:.1f} s; summary in {out}/summary.json"
+        f"{elapsed:.1f} s; summary in {out / name}"
     )
     return 0
 

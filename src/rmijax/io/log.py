@@ -68,6 +68,7 @@ class Log:
     Attributes:
         traj: the desired motion on the grid (``traj.t`` starts at 0), with
             the controller's gains and step: what :func:`rmijax.rmi` takes.
+        robot: the :class:`~rmijax.UncertainRobot` the log was read for.
         readings: (T+1, n, 2) measured encoder (rad) and tachometer (rad/s);
             NaN where the log has a NaN sample.
         time: (T+1,) the grid in the log's own clock, s.
@@ -82,6 +83,7 @@ class Log:
     """
 
     traj: Trajectory
+    robot: UncertainRobot
     readings: np.ndarray
     time: np.ndarray
     joint_names: tuple[str, ...]
@@ -397,6 +399,7 @@ def assemble(
     source.setdefault("ignored", [])
     return Log(
         traj=traj,
+        robot=params,
         readings=readings,
         time=grid,
         joint_names=names,
