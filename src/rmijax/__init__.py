@@ -25,6 +25,7 @@ from rmijax.evaluation.worst_case import (
     worst_case as worst_case,
     worst_case_table as worst_case_table,
 )
+from rmijax.io import Log as Log, LogError as LogError, read_log as read_log
 from rmijax.methods.base import (
     Bounds as Bounds,
     DivergedError as DivergedError,
@@ -89,6 +90,8 @@ __all__ = [
     "Detection",
     "DivergedError",
     "Fault",
+    "Log",
+    "LogError",
     "Monitor",
     "MonitorOutput",
     "MonitorState",
@@ -114,6 +117,7 @@ __all__ = [
     "planar_arm",
     "planar_arm_model",
     "preset_arm",
+    "read_log",
     "rmi",
     "rmi_step",
     "simulate",

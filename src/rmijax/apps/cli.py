@@ -2,6 +2,7 @@
 
 rmijax --out rmijax-output          # the default run (a minute or two on 2 cores)
 rmijax --quick --out /tmp/smoke     # 6 s runs, fewer draws: a smoke test
+rmijax check LOG --robot NAME       # reports for recorded logs (rmijax.apps.check)
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ def _parser():
             "thresholds) and containment of constant-parameter runs. Writes PNGs, "
             "report.json and report.md to --out."
         ),
+        epilog="Recorded logs: rmijax check LOG --robot NAME --out DIR (rmijax check --help).",
     )
     parser.add_argument("--out", default="rmijax-output", help="output folder (created)")
     parser.add_argument(
@@ -140,6 +142,11 @@ def _pct(value):
 
 
 def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv and argv[0] == "check":  # `rmijax check LOG ...`: reports for recorded logs
+        from rmijax.apps.check import main as check
+
+        return check(argv[1:])
     args = _parser().parse_args(argv)
     if args.robot is not None:
         return _real_arm(args)
