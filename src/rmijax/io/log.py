@@ -119,13 +119,14 @@ def resolve_robot(robot) -> UncertainRobot:
 
     Names: ``"paper_pendulum"``, ``"paper_arm2"``, ``"preset<n>"`` (the
     ``n``-link planar preset) and, where :func:`rmijax.load_robot` exists, the
-    real arms it ships (``"panda"``, ...).
+    real arms it ships (``"panda"``, ``"iiwa14"``, ``"ur5e"``).
 
     Raises:
         ValueError: an unknown name (the message lists the known ones).
         TypeError: neither a name nor an UncertainRobot.
     """
-    import rmijax
+    from rmijax.robots import planar
+    from rmijax.robots.loaders import SHIPPED, load_robot
 
     if isinstance(robot, UncertainRobot):
         return robot
@@ -135,19 +136,15 @@ def resolve_robot(robot) -> UncertainRobot:
         )
     name = robot.strip()
     if name in ("paper_pendulum", "paper_arm2"):
-        return getattr(rmijax, name)()
+        return getattr(planar, name)()
     match = _PRESET.match(name)
     if match:
-        return rmijax.preset_arm(int(match.group(1)))
-    loader = getattr(rmijax, "load_robot", None)
-    if loader is not None:
-        try:
-            return loader(name)
-        except (ValueError, KeyError, FileNotFoundError) as err:
-            raise ValueError(f"unknown robot {name!r}: {err}") from err
+        return planar.preset_arm(int(match.group(1)))
+    if name in SHIPPED:
+        return load_robot(name)
     raise ValueError(
         f"unknown robot {name!r}; give 'paper_pendulum', 'paper_arm2', 'preset<n>' "
-        "(n links) or a rmijax.UncertainRobot"
+        f"(n links), a shipped arm {SHIPPED} or a rmijax.UncertainRobot"
     )
 
 
