@@ -87,3 +87,33 @@ def test_pick_and_place_starts_and_ends_at_home():
     np.testing.assert_allclose(traj.q_d[-1], home, atol=1e-12)
     assert float(traj.t[-1]) == pytest.approx(3.5)
     assert float(jnp.max(jnp.abs(traj.q_d - home[None, :]))) > 0.3
+
+
+def panda_true_robots(params, draws, seed=0):
+    """Every corner of the mass scales and payload (friction at a random corner each), plus
+    ``draws`` uniform draws of all parameters."""
+    rng = np.random.default_rng(seed)
+    lo, hi = np.asarray(params.lo), np.asarray(params.hi)
+    enumerated = 8  # 7 mass scales and the payload, first in the parameter order
+    index = np.arange(2**enumerated)
+    bits = np.zeros((index.size, lo.size), bool)
+    bits[:, :enumerated] = (index[:, None] >> np.arange(enumerated)[None, :]) & 1
+    bits[:, enumerated:] = rng.integers(0, 2, (index.size, lo.size - enumerated))
+    corners = np.where(bits, hi, lo)
+    uniform = lo + (hi - lo) * rng.uniform(size=(draws, lo.size))
+    return np.concatenate([corners, uniform])
+
+
+@pytest.mark.slow
+def test_coupled_containment_on_the_panda(panda):
+    """SPEC section 10's levels, measured on a 3 s pick-and-place segment of the Panda."""
+    home = home_pose("panda")
+    target = home + np.array([0.45, 0.4, 0.0, 0.45, 0.0, 0.0, 0.5])
+    traj = rmijax.waypoint_trajectory([home, target, home], segment_time=1.5)
+    bounds = rmijax.rmi(traj, panda)
+    states, _ = rmijax.simulate(traj, panda, panda_true_robots(panda, 200))
+    found = rmijax.containment(states, bounds)
+    assert found["runs"] == 2**8 + 200
+    assert found["inside"] >= 0.997
+    assert found["clean_runs"] >= 0.95
+    assert found["worst"] < 0.05
