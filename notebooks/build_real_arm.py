@@ -69,7 +69,8 @@ if pin is not None:
         q, qd = rng.uniform(-2, 2, 7), rng.normal(size=7)
         m_pin = pin.crba(model, data, q)
         m_pin = np.triu(m_pin) + np.triu(m_pin, 1).T
-        h_pin = pin.nonLinearEffects(model, data, q, qd) + viscous * qd + coulomb * np.asarray(smooth_sign(qd))
+        friction = viscous * qd + coulomb * np.asarray(smooth_sign(qd))
+        h_pin = pin.nonLinearEffects(model, data, q, qd) + friction
         m_ours = np.asarray(params.model.mass_matrix(q, nominal))
         h_ours = np.asarray(params.model.bias(q, qd, nominal))
         worst_m = max(worst_m, np.abs(m_ours - m_pin).max() / np.abs(m_pin).max())
