@@ -5,6 +5,10 @@ Importing rmijax changes no JAX configuration: choose float64 yourself with
 """
 
 from rmijax import experiments as experiments
+from rmijax.certified import (
+    Certificate as Certificate,
+    certified_bounds as certified_bounds,
+)
 from rmijax.control import (
     closed_loop_step as closed_loop_step,
     coupled_perturbation as coupled_perturbation,
@@ -83,6 +87,7 @@ __all__ = [
     "SCALABLE_METHODS",
     "SEARCHES",
     "Bounds",
+    "Certificate",
     "Detection",
     "DivergedError",
     "Fault",
@@ -95,6 +100,7 @@ __all__ = [
     "UncertainRobot",
     "WorstCase",
     "bounds",
+    "certified_bounds",
     "closed_loop_step",
     "containment",
     "corner_tensor",
