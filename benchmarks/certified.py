@@ -73,16 +73,15 @@ def run_case(name, duration, draws, every, splits):
     times = np.arange(0.5, duration + 1e-9, every)
     table = rmijax.worst_case_table(traj, params, times, random_starts=2, iterations=20)
     steps = table["steps"]
-    maximisers = np.concatenate(
-        [table["th_low"].reshape(-1, params.n_params), table["th_high"].reshape(-1, params.n_params)]
-    )
+    p = params.n_params
+    maximisers = np.concatenate([table["th_low"].reshape(-1, p), table["th_high"].reshape(-1, p)])
     states = np.asarray(rmijax.simulate(traj, params, maximisers)[0])
     out = np.maximum(states - upper, lower - states)
     wc_escapes = int(np.sum(np.any(out > 1e-12, axis=(1, 2, 3))))
     worst = max(worst, float(out.max()))
-    reach = np.maximum(table["high"], np.maximum(states[:, steps].max(0), 0 * table["high"]))
+    reach_high = np.maximum(table["high"], states[:, steps].max(0))
     reach_low = np.minimum(table["low"], states[:, steps].min(0))
-    ratio = (upper[steps] - lower[steps]) / (reach - reach_low)
+    ratio = (upper[steps] - lower[steps]) / (reach_high - reach_low)
     row = dict(
         case=name,
         n=params.n_joints,
