@@ -31,6 +31,10 @@ from rmijax.methods.base import (
     DivergedError as DivergedError,
     ProblemTooLargeError as ProblemTooLargeError,
 )
+from rmijax.methods.certified import (
+    Certificate as Certificate,
+    certified_bounds as certified_bounds,
+)
 from rmijax.methods.dispatch import (
     DEFAULT_WINDOWS as DEFAULT_WINDOWS,
     METHODS as METHODS,
@@ -87,6 +91,7 @@ __all__ = [
     "SCALABLE_METHODS",
     "SEARCHES",
     "Bounds",
+    "Certificate",
     "Detection",
     "DivergedError",
     "Fault",
@@ -101,6 +106,7 @@ __all__ = [
     "UncertainRobot",
     "WorstCase",
     "bounds",
+    "certified_bounds",
     "closed_loop_step",
     "containment",
     "corner_tensor",

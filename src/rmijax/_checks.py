@@ -72,7 +72,8 @@ def first_non_finite(*arrays):
 def numbers(name, value, dtype):
     """``value`` as a JAX array of ``dtype``; strings and other non-numbers refused by name."""
     if isinstance(value, (str, bytes)) or (
-        hasattr(value, "dtype") and not jnp.issubdtype(value.dtype, jnp.number)
+        hasattr(value, "dtype")
+        and not jnp.issubdtype(value.dtype, jnp.number)
         and not jnp.issubdtype(value.dtype, jnp.bool_)
     ):
         raise TypeError(f"{name} must be a number or an array of numbers, got {value!r}")

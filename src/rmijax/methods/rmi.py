@@ -635,9 +635,7 @@ def _end_step(t_f, n_steps):
         raise ValueError(f"t_f must be a scalar end step, got shape {np.shape(t_f)}")
     if _checks.is_concrete(t_f):
         if not 0 <= int(t_f) <= n_steps:
-            raise ValueError(
-                f"t_f={int(t_f)} is outside the trajectory's end steps [0, {n_steps}]"
-            )
+            raise ValueError(f"t_f={int(t_f)} is outside the trajectory's end steps [0, {n_steps}]")
         return jnp.asarray(int(t_f), jnp.int32)
     return jnp.clip(t_f, 0, n_steps).astype(jnp.int32)
 
