@@ -5,6 +5,7 @@ import pytest
 
 import rmijax
 from rmijax.apps.experiments import paper_true_parameters
+from rmijax.detection.suite import default_fault_suite
 from rmijax.evaluation.comparison import Case, _Containment, compare, prefix, summary_rows
 
 
@@ -40,41 +41,98 @@ def test_containment_counts():
     assert result["worst"] == np.inf
 
 
+def _detections(traj, params, th_true, faults, band_of):
+    """Latency of each fault with each method's band, recomputed with the public API."""
+    latencies = {}
+    for fault in faults:
+        x_true, y_meas = rmijax.simulate(traj, params, th_true, faults=[fault])
+        for method, band in band_of(y_meas).items():
+            found = rmijax.detect(y_meas, band, onset=fault.onset, x_true=x_true)
+            latencies.setdefault(method, []).append(found.latency)
+    return latencies
+
+
 def test_pendulum_case_end_to_end():
+    """Every score of ``compare`` equals the same quantity recomputed independently from
+    the public API (bands, simulate, containment, detect) on the same draws and faults."""
     params = rmijax.paper_pendulum()
     traj = rmijax.trajectory("sine", duration=1.0)
-    case = Case("pendulum", params, traj, paper_true_parameters(params))
+    th_true = paper_true_parameters(params)
+    case = Case("pendulum", params, traj, th_true)
     methods = ("rmi", "empirical", "short_window", "constant_corners")
+    times = [0.5, 0.9]
     result = compare(
         case,
         methods,
         onsets=(0.4,),
         draws=30,
-        times=[0.5, 0.9],
+        times=times,
         short_window_runs=3,
         worst_options=dict(random_starts=2, iterations=10),
         timing_steps=20,
         log=None,
     )
     assert result["n"] == 1 and result["K"] == 4 and result["T"] == 100
-    assert len(result["faults"]) == len(rmijax.FAULT_KINDS)
-    # the worst-case search starts from the Monte-Carlo extremes: its range holds every run
-    th = rmijax.monte_carlo_parameters(params, 30, seed=0, corners=True)
-    states, _ = rmijax.simulate(traj, params, th)
-    values = np.asarray(states)[:, [50, 90]]
+    assert result["diverged"] == {}
+    faults = default_fault_suite(1, 0.4)
+    assert [f["fault"] for f in result["faults"]] == [f.label for f in faults]
+
+    bands = {m: rmijax.bounds(traj, params, method=m) for m in methods if m != "short_window"}
+    th = rmijax.monte_carlo_parameters(params, 30, seed=0, corners=True)  # compare's draws
+    states = np.asarray(rmijax.simulate(traj, params, th)[0])
+    steps = np.rint(np.asarray(times) / traj.dt).astype(int)
     low = np.asarray(result["worst_case"]["low"])
     high = np.asarray(result["worst_case"]["high"])
-    assert np.all(low <= values.min(axis=0) + 1e-12)
-    assert np.all(high >= values.max(axis=0) - 1e-12)
-    # constant_corners is the envelope of the corner runs: it holds every corner run
-    corners = rmijax.simulate(traj, params, th[:4])[0]
-    band = rmijax.bounds(traj, params, method="constant_corners")
-    assert np.all(np.asarray(corners) >= np.asarray(band.lower) - 1e-12)
-    assert np.all(np.asarray(corners) <= np.asarray(band.upper) + 1e-12)
+
+    def held(y):  # compare builds short_window bands from readings with NaN held
+        y = np.array(y)
+        for k in range(1, y.shape[0]):
+            y[k] = np.where(np.isfinite(y[k]), y[k], y[k - 1])
+        return y
+
+    def band_of(y_meas):
+        sw = rmijax.bounds(traj, params, method="short_window", readings=held(y_meas))
+        return {**bands, "short_window": sw}
+
+    latencies = _detections(traj, params, th_true, faults, band_of)
     for method in methods:
         m = result["methods"][method]
-        assert m["seconds_per_step"] > 0
-        assert m["containment"]["runs"] == (3 if method == "short_window" else 34)
-        assert 0.0 <= m["detected"] <= 1.0
+        # containment of the Monte-Carlo runs (short_window: its first 3 runs, own bands)
+        if method == "short_window":
+            parts = [
+                rmijax.containment(
+                    run[None], rmijax.bounds(traj, params, method=method, readings=run)
+                )
+                for run in states[:3]
+            ]
+            inside = np.mean([p["inside"] for p in parts])
+            clean = np.mean([p["clean_runs"] for p in parts])
+            worst, runs = max(p["worst"] for p in parts), 3
+        else:
+            whole = rmijax.containment(states, bands[method])
+            inside, clean, worst, runs = (
+                whole[k] for k in ("inside", "clean_runs", "worst", "runs")
+            )
+            # tightness against the worst-case table
+            lower = np.asarray(bands[method].lower)[steps]
+            upper = np.asarray(bands[method].upper)[steps]
+            contained = np.concatenate(
+                [(low >= lower - 1e-9).ravel(), (high <= upper + 1e-9).ravel()]
+            )
+            assert m["worst_points_inside"] == pytest.approx(contained.mean())
+            ratio = (upper - lower) / (high - low)
+            for s, sensor in enumerate(("encoder", "tachometer")):
+                assert m["width_over_worst"][sensor]["median"] == pytest.approx(
+                    np.median(ratio[..., s]), rel=1e-12
+                )
+        assert m["containment"]["runs"] == runs == (3 if method == "short_window" else 34)
+        assert m["containment"]["inside"] == pytest.approx(inside, rel=1e-12)
+        assert m["containment"]["clean_runs"] == pytest.approx(clean, rel=1e-12)
+        assert m["containment"]["worst"] == pytest.approx(worst, rel=1e-9, abs=1e-15)
+        # detection over the suite: same latencies, same detected share
+        assert [r[method]["latency"] for r in result["faults"]] == pytest.approx(latencies[method])
+        found = [v for v in latencies[method] if v is not None]
+        assert m["detected"] == pytest.approx(len(found) / len(faults))
+        assert m["median_latency"] == (pytest.approx(np.median(found)) if found else None)
     rows = summary_rows([result])
     assert [r["method"] for r in rows] == list(methods)
