@@ -52,6 +52,7 @@ from rmijax.robots.box import (
     monte_carlo_parameters as monte_carlo_parameters,
     uncertain_robot as uncertain_robot,
 )
+from rmijax.robots.check import ModelCheckError as ModelCheckError, check_model as check_model
 from rmijax.robots.model import GRAVITY as GRAVITY, RobotModel as RobotModel
 from rmijax.robots.planar import (
     paper_arm2 as paper_arm2,
@@ -73,6 +74,7 @@ __version__ = "0.1.0"
 __all__ = [
     "AffineBias",
     "LinearDynamics",
+    "ModelCheckError",
     "DEFAULT_MEMORY_BUDGET",
     "DEFAULT_WINDOWS",
     "FAULT_KINDS",
@@ -95,6 +97,7 @@ __all__ = [
     "UncertainRobot",
     "WorstCase",
     "bounds",
+    "check_model",
     "closed_loop_step",
     "containment",
     "corner_tensor",

@@ -19,6 +19,7 @@ import numpy as np
 from rmijax import _checks
 from rmijax.control import computed_torque, servo_command
 from rmijax.robots.box import UncertainRobot
+from rmijax.robots.check import check_model
 from rmijax.trajectory import Trajectory
 
 __all__ = ["FAULT_KINDS", "DIVERGENCE_LIMIT", "Fault", "simulate"]
@@ -366,6 +367,7 @@ def simulate(
         raise TypeError(f"faults must be a Fault or a list of Faults, got {faults!r}")
     tables = _fault_tables(tuple(faults), n, traj.n_steps, traj.dt, dtype)
     lo, hi = _checks.noise_interval(noise_lo, noise_hi, n, dtype)
+    check_model(params, traj)
     if _checks.is_concrete(th):
         outside = np.asarray((th < params.lo[None]) | (th > params.hi[None]))
         if outside.any():
