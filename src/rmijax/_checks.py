@@ -12,6 +12,46 @@ import jax.numpy as jnp
 import numpy as np
 
 
+class ProblemTooLargeError(MemoryError):
+    """The problem cannot be done here: one batch exceeds the memory budget, or the
+    estimated run time is hours where the caller asked for no progress bar.
+
+    The message gives the estimate and the fixes. Re-exported as
+    ``rmijax.ProblemTooLargeError``.
+    """
+
+
+MAX_SILENT_SECONDS = 600.0
+"""Longest estimated run (s) a method starts without ``progress=True``."""
+
+
+def check_time(what, seconds, *, progress, fixes):
+    """Refuse, at once, a run estimated over :data:`MAX_SILENT_SECONDS` without a progress bar.
+
+    Args:
+        what: the work, e.g. ``"constant_corners: 16777216 corners x 1501 steps"``.
+        seconds: the estimate, taken optimistic (a fast machine): a refusal
+            means the run is hopeless here, not merely slow.
+        progress: the caller's ``progress`` flag; True runs it anyway (the bar
+            shows the real ETA).
+        fixes: what to change instead, one sentence.
+    """
+    if progress or seconds <= MAX_SILENT_SECONDS:
+        return
+    raise ProblemTooLargeError(
+        f"{what} would take at least {_duration(seconds)} (estimated for a fast machine, "
+        f"before starting). {fixes} Or pass progress=True to run it anyway with a "
+        "progress bar and its ETA."
+    )
+
+
+def _duration(seconds):
+    for unit, size in (("days", 86400.0), ("hours", 3600.0), ("minutes", 60.0)):
+        if seconds >= 2 * size:
+            return f"{seconds / size:.3g} {unit}"
+    return f"{seconds:.3g} s"
+
+
 def is_concrete(value) -> bool:
     """True when ``value`` holds actual numbers (not a JAX tracer)."""
     return not isinstance(value, jax.core.Tracer)
@@ -72,7 +112,8 @@ def first_non_finite(*arrays):
 def numbers(name, value, dtype):
     """``value`` as a JAX array of ``dtype``; strings and other non-numbers refused by name."""
     if isinstance(value, (str, bytes)) or (
-        hasattr(value, "dtype") and not jnp.issubdtype(value.dtype, jnp.number)
+        hasattr(value, "dtype")
+        and not jnp.issubdtype(value.dtype, jnp.number)
         and not jnp.issubdtype(value.dtype, jnp.bool_)
     ):
         raise TypeError(f"{name} must be a number or an array of numbers, got {value!r}")

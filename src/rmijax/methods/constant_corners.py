@@ -52,6 +52,10 @@ _MAX_CHUNK = 1024
 _WINDOW_LANES = 4096
 """(corner, end step) pairs advanced together in the ``window`` horizon."""
 
+PLANT_STEPS_PER_SECOND = 2e7
+"""Plant steps per second, weighted by ``n^2``, that the time estimate assumes: a fast
+machine (a 2-core CPU measured 2e6 to 6e6)."""
+
 _MAX_PARAMS = 30
 """Corners are indexed by int32: at most ``2^30`` of them."""
 
@@ -317,6 +321,21 @@ def constant_corner_bounds(
     uncertain = uncertain_indices(params)  # certain parameters add no corners
     itemsize = jnp.dtype(dtype).itemsize
     size, n_chunks, batch = _chunking(traj, params, horizon, chunk_size, itemsize, uncertain)
+    n_corners = _n_corners(params, uncertain)
+    per_corner = traj.n_steps + 1
+    if horizon == "window":
+        per_corner *= min(window, traj.n_steps)
+    steps = n_corners * per_corner
+    _checks.check_time(
+        f"constant_corners over {n_corners} corners x {traj.n_steps + 1} steps"
+        + (f" x {min(window, traj.n_steps)}-step windows" if horizon == "window" else ""),
+        steps * traj.n_joints**2 / PLANT_STEPS_PER_SECOND,
+        progress=progress,
+        fixes="Make parameters certain (lo == hi: each halves the corners), shorten the run, "
+        "or use a method that scales (rmijax.bounds with method='linearized' or "
+        "'corner_search').",
+    )
+    window = min(window, traj.n_steps)  # a longer window gives the same windows
     if horizon == "run":  # no window: one compiled program whatever ``window`` is
         window, batch = 0, 0
     options = dict(

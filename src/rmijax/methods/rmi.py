@@ -27,7 +27,7 @@ import numpy as np
 from rmijax import _checks
 from rmijax.control import closed_loop_step, computed_torque, servo_command
 from rmijax.methods.base import Bounds, DivergedError, ProblemTooLargeError, check_types
-from rmijax.methods.choosers import enumerate_corners, resolve
+from rmijax.methods.choosers import StructuredChooser, enumerate_corners, resolve
 from rmijax.methods.planar_search import FactoredSearch
 from rmijax.robots.box import UncertainRobot, corner_tensor, uncertain_indices
 from rmijax.robots.check import check_model
@@ -44,6 +44,7 @@ __all__ = [
     "costate_weights",
     "enumerate_corners",
     "estimate_memory",
+    "estimate_seconds",
     "rmi",
     "rmi_step",
     "window_constants",
@@ -150,6 +151,33 @@ def _enumerated_corners(params):
     (certain ones, ``lo == hi``, add none), ``2^p`` when the box is traced."""
     uncertain = uncertain_indices(params)
     return params.n_corners if uncertain is None else 2 ** len(uncertain)
+
+
+EVALUATIONS_PER_SECOND = 1e8
+"""Dynamics evaluations per second, weighted by ``n^2``, that the time estimate assumes:
+a fast machine (a 2-core CPU measured about 1e7), so a refusal means hopeless, not slow."""
+
+
+def estimate_seconds(params, n_steps, *, mode="coupled", window=100, search="auto"):
+    """Optimistic run time (s) of :func:`rmi` over ``n_steps`` steps, or None if not estimated.
+
+    Counted for the searches that evaluate corners: enumeration (``2^u`` corners
+    of the ``u`` uncertain parameters) and the structured choosers
+    (``2^(p-a) (1 + a)`` values); ``(T+1) min(N, T) 4n`` track steps each, an
+    evaluation costing ``n^2`` at :data:`EVALUATIONS_PER_SECOND`. The planar
+    arm's factored search and the corner search scale polynomially: None.
+    """
+    del mode
+    found = resolve(params.model, search)
+    if found is enumerate_corners:
+        per_step = _enumerated_corners(params)
+    elif isinstance(found, StructuredChooser):
+        per_step = found.n_evaluated * (1 + len(found.affine))
+    else:
+        return None
+    n = params.n_joints
+    evaluations = (n_steps + 1) * min(int(window), n_steps) * 4 * n * per_step
+    return evaluations * n * n / EVALUATIONS_PER_SECOND
 
 
 _WINDOW_DATA_BYTES = 64 * 2**10
@@ -587,9 +615,21 @@ def _rmi_from_starts(
     """
     progress = _checks.boolean("progress", progress)
     n_end = traj.n_steps + 1
+    window = min(int(window), traj.n_steps)  # a longer window gives the same windows
     batch = _batch_size(
         params, mode, window, traj.dtype, memory_budget, n_end, chunk_size, search=search
     )
+    seconds = estimate_seconds(params, traj.n_steps, mode=mode, window=window, search=search)
+    if seconds is not None:
+        _checks.check_time(
+            f"RMI over {_enumerated_corners(params)} corners x {4 * traj.n_joints} tracks x "
+            f"{n_end} end steps x {window}-step windows",
+            seconds,
+            progress=progress,
+            fixes="Make parameters certain (lo == hi: each halves the corners), shorten the "
+            "run or the window, or use a method that scales (rmijax.bounds with "
+            "method='corner_search' or 'linearized').",
+        )
     leaves = jax.tree_util.tree_leaves((traj, params, starts))
     concrete = all(_checks.is_concrete(a) for a in leaves)
     uncertain = uncertain_indices(params)
@@ -664,9 +704,7 @@ def _end_step(t_f, n_steps):
         raise ValueError(f"t_f must be a scalar end step, got shape {np.shape(t_f)}")
     if _checks.is_concrete(t_f):
         if not 0 <= int(t_f) <= n_steps:
-            raise ValueError(
-                f"t_f={int(t_f)} is outside the trajectory's end steps [0, {n_steps}]"
-            )
+            raise ValueError(f"t_f={int(t_f)} is outside the trajectory's end steps [0, {n_steps}]")
         return jnp.asarray(int(t_f), jnp.int32)
     return jnp.clip(t_f, 0, n_steps).astype(jnp.int32)
 
@@ -697,6 +735,7 @@ def rmi_step(
     dtype, lo, hi = _validate(traj, params, mode, window, noise_lo, noise_hi, search)
     traj, params = _cast(traj, params, dtype)
     t_f = _end_step(t_f, traj.n_steps)
+    window = min(int(window), traj.n_steps)  # a longer window gives the same window
     check_memory(params, mode=mode, window=window, dtype=dtype, search=search)
     bounds = _rmi_one(
         traj,

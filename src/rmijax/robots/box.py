@@ -43,7 +43,7 @@ def corner_tensor(lo, hi, indices=None):
     """
     p = lo.shape[-1]
     chosen = np.arange(p) if indices is None else np.asarray(indices, int)
-    index = jnp.arange(2 ** chosen.size, dtype=jnp.int32)
+    index = jnp.arange(2**chosen.size, dtype=jnp.int32)
     bits = (index[:, None] >> jnp.arange(chosen.size, dtype=jnp.int32)[None, :]) & 1
     if indices is None:
         return jnp.where(bits == 1, hi[None, :], lo[None, :])
