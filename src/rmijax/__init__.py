@@ -50,6 +50,7 @@ from rmijax.robots.box import (
     UncertainRobot as UncertainRobot,
     corner_tensor as corner_tensor,
     monte_carlo_parameters as monte_carlo_parameters,
+    uncertain_indices as uncertain_indices,
     uncertain_robot as uncertain_robot,
 )
 from rmijax.robots.check import ModelCheckError as ModelCheckError, check_model as check_model
@@ -118,6 +119,7 @@ __all__ = [
     "simulate",
     "trajectory",
     "trajectory_from_samples",
+    "uncertain_indices",
     "uncertain_robot",
     "worst_case",
     "worst_case_table",

@@ -133,6 +133,10 @@ def estimate_memory(
     errs high by about 2x; it grows linearly with the number of end steps per batch.
     """
     del window  # the scan keeps one step's intermediates alive at a time
+    if mode not in MODES:
+        raise ValueError(f"unknown mode {mode!r}; choose one of {MODES}")
+    if not callable(search) and search not in SEARCHES:
+        raise ValueError(f"unknown search {search!r}; choose one of {SEARCHES}")
     n, k = params.n_joints, _enumerated_corners(params)
     itemsize = jnp.dtype(dtype or params.dtype).itemsize
     tracks = 4 * n
