@@ -214,7 +214,7 @@ RMI_ARGS = [
     (dict(memory_budget="4GB"), ValueError, r"^memory_budget must be a positive number of bytes"),
     (dict(memory_budget=-1), ValueError, r"^memory_budget must be a positive number"),
     (dict(memory_budget=np.nan), ValueError, r"^memory_budget must be a positive number"),
-    (dict(memory_budget=100), rmijax.ProblemTooLargeError, r"memory_budget is 0.00 GiB"),
+    (dict(memory_budget=100), rmijax.ProblemTooLargeError, r"memory_budget is 100 bytes"),
     (dict(chunk_size=2.5), ValueError, r"^chunk_size must be an integer number of end steps"),
     (dict(chunk_size=True), ValueError, r"^chunk_size must be an integer"),
     (dict(chunk_size=0), ValueError, r"^chunk_size must be an integer number of end steps >= 1"),

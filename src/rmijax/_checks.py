@@ -68,6 +68,8 @@ def float_array(name, value, shape, *, dtype=None):
         dtype = getattr(value, "dtype", None)
         if dtype is None or not jnp.issubdtype(dtype, jnp.floating):
             dtype = default_float()
+        elif jnp.dtype(dtype).itemsize < 4:  # float16 inputs: computed in the default float
+            dtype = jnp.promote_types(dtype, default_float())
     else:
         dtype = float_dtype(dtype)
     if isinstance(value, (str, bytes)):
@@ -295,5 +297,10 @@ def float_dtype(dtype):
         raise TypeError(
             f"dtype must be a float dtype (jnp.float32 or jnp.float64), got {resolved}; "
             "the dynamics are not defined on integers"
+        )
+    if resolved.itemsize < 4:
+        raise TypeError(
+            f"dtype {resolved} is too coarse for the dynamics (the corner tie tolerance "
+            "alone is eps^(2/3) ~ 1e-2); use jnp.float32 or jnp.float64"
         )
     return resolved

@@ -201,16 +201,24 @@ def check_memory(
     _batch_size(params, mode, window, dtype or params.dtype, budget, 1, None, search=search)
 
 
+def _size(nbytes):
+    """Bytes for a message: ``1.50 GiB``, ``12.0 MiB``, ``64.0 KiB`` or ``100 bytes``."""
+    for unit, scale in (("GiB", 2**30), ("MiB", 2**20), ("KiB", 2**10)):
+        if nbytes >= 0.1 * scale:
+            return f"{nbytes / scale:.{2 if unit == 'GiB' else 1}f} {unit}"
+    return f"{int(nbytes)} bytes"
+
+
 def _batch_size(params, mode, window, dtype, budget, n_end_steps, chunk_size, *, search="auto"):
     budget = _checks.memory_budget(budget)
     chunk_size = _checks.chunk_size(chunk_size, "end steps")
     per_end_step = estimate_memory(params, mode=mode, window=window, dtype=dtype, search=search)
     if per_end_step > budget:
         raise ProblemTooLargeError(
-            f"one end step of this problem needs about {per_end_step / 2**30:.2f} GiB "
+            f"one end step of this problem needs about {_size(per_end_step)} "
             f"({params.n_joints} joints, {_enumerated_corners(params)} corners of the "
             f"uncertain parameters, mode={mode!r}) but memory_budget is "
-            f"{budget / 2**30:.2f} GiB even at chunk size 1. Raise memory_budget (bytes) if "
+            f"{_size(budget)} even at chunk size 1. Raise memory_budget (bytes) if "
             "the machine has the memory, make parameters certain (lo == hi: each halves "
             "the corners) or use a method that scales (rmijax.bounds, e.g. "
             "method='corner_search' or 'linearized')."
@@ -219,8 +227,8 @@ def _batch_size(params, mode, window, dtype, budget, n_end_steps, chunk_size, *,
         if chunk_size * per_end_step > budget:
             raise ProblemTooLargeError(
                 f"chunk_size={chunk_size} needs about "
-                f"{int(chunk_size) * per_end_step / 2**30:.2f} GiB, over memory_budget "
-                f"{budget / 2**30:.2f} GiB; use chunk_size <= {budget // per_end_step} "
+                f"{_size(chunk_size * per_end_step)}, over memory_budget "
+                f"{_size(budget)}; use chunk_size <= {budget // per_end_step} "
                 "or leave it None to size it from the budget"
             )
         return min(int(chunk_size), n_end_steps)
