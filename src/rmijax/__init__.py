@@ -55,8 +55,10 @@ from rmijax.robots.box import (
     UncertainRobot as UncertainRobot,
     corner_tensor as corner_tensor,
     monte_carlo_parameters as monte_carlo_parameters,
+    uncertain_indices as uncertain_indices,
     uncertain_robot as uncertain_robot,
 )
+from rmijax.robots.check import ModelCheckError as ModelCheckError, check_model as check_model
 from rmijax.robots.loaders import SHIPPED as SHIPPED, load_robot as load_robot
 from rmijax.robots.model import GRAVITY as GRAVITY, RobotModel as RobotModel
 from rmijax.robots.planar import (
@@ -80,6 +82,7 @@ __version__ = "0.1.0"
 __all__ = [
     "AffineBias",
     "LinearDynamics",
+    "ModelCheckError",
     "DEFAULT_MEMORY_BUDGET",
     "DEFAULT_WINDOWS",
     "FAULT_KINDS",
@@ -107,6 +110,7 @@ __all__ = [
     "WorstCase",
     "bounds",
     "certified_bounds",
+    "check_model",
     "closed_loop_step",
     "containment",
     "corner_tensor",
@@ -129,6 +133,7 @@ __all__ = [
     "simulate",
     "trajectory",
     "trajectory_from_samples",
+    "uncertain_indices",
     "uncertain_robot",
     "waypoint_trajectory",
     "worst_case",

@@ -12,6 +12,46 @@ import jax.numpy as jnp
 import numpy as np
 
 
+class ProblemTooLargeError(MemoryError):
+    """The problem cannot be done here: one batch exceeds the memory budget, or the
+    estimated run time is hours where the caller asked for no progress bar.
+
+    The message gives the estimate and the fixes. Re-exported as
+    ``rmijax.ProblemTooLargeError``.
+    """
+
+
+MAX_SILENT_SECONDS = 600.0
+"""Longest estimated run (s) a method starts without ``progress=True``."""
+
+
+def check_time(what, seconds, *, progress, fixes):
+    """Refuse, at once, a run estimated over :data:`MAX_SILENT_SECONDS` without a progress bar.
+
+    Args:
+        what: the work, e.g. ``"constant_corners: 16777216 corners x 1501 steps"``.
+        seconds: the estimate, taken optimistic (a fast machine): a refusal
+            means the run is hopeless here, not merely slow.
+        progress: the caller's ``progress`` flag; True runs it anyway (the bar
+            shows the real ETA).
+        fixes: what to change instead, one sentence.
+    """
+    if progress or seconds <= MAX_SILENT_SECONDS:
+        return
+    raise ProblemTooLargeError(
+        f"{what} would take at least {_duration(seconds)} (estimated for a fast machine, "
+        f"before starting). {fixes} Or pass progress=True to run it anyway with a "
+        "progress bar and its ETA."
+    )
+
+
+def _duration(seconds):
+    for unit, size in (("days", 86400.0), ("hours", 3600.0), ("minutes", 60.0)):
+        if seconds >= 2 * size:
+            return f"{seconds / size:.3g} {unit}"
+    return f"{seconds:.3g} s"
+
+
 def is_concrete(value) -> bool:
     """True when ``value`` holds actual numbers (not a JAX tracer)."""
     return not isinstance(value, jax.core.Tracer)
@@ -28,6 +68,8 @@ def float_array(name, value, shape, *, dtype=None):
         dtype = getattr(value, "dtype", None)
         if dtype is None or not jnp.issubdtype(dtype, jnp.floating):
             dtype = default_float()
+        elif jnp.dtype(dtype).itemsize < 4:  # float16 inputs: computed in the default float
+            dtype = jnp.promote_types(dtype, default_float())
     else:
         dtype = float_dtype(dtype)
     if isinstance(value, (str, bytes)):
@@ -255,5 +297,10 @@ def float_dtype(dtype):
         raise TypeError(
             f"dtype must be a float dtype (jnp.float32 or jnp.float64), got {resolved}; "
             "the dynamics are not defined on integers"
+        )
+    if resolved.itemsize < 4:
+        raise TypeError(
+            f"dtype {resolved} is too coarse for the dynamics (the corner tie tolerance "
+            "alone is eps^(2/3) ~ 1e-2); use jnp.float32 or jnp.float64"
         )
     return resolved

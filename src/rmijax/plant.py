@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 import warnings
 
 import jax
@@ -19,6 +20,7 @@ import numpy as np
 from rmijax import _checks
 from rmijax.control import computed_torque, servo_command
 from rmijax.robots.box import UncertainRobot
+from rmijax.robots.check import check_model
 from rmijax.trajectory import Trajectory
 
 __all__ = ["FAULT_KINDS", "DIVERGENCE_LIMIT", "Fault", "simulate"]
@@ -33,6 +35,11 @@ FAULT_KINDS = (
     "locked",
 )
 """Fault kinds: sensor faults change readings, motor faults change the plant."""
+
+MEMORY_BUDGET = 4 * 2**30
+"""Bytes a batch of runs may hold (noise, states, readings and their masked copies)."""
+
+_ARRAYS_PER_RUN = 6
 
 DIVERGENCE_LIMIT = 1e4
 """|q| (rad) or |qd| (rad/s) beyond which a faulty plant counts as diverged."""
@@ -366,6 +373,7 @@ def simulate(
         raise TypeError(f"faults must be a Fault or a list of Faults, got {faults!r}")
     tables = _fault_tables(tuple(faults), n, traj.n_steps, traj.dt, dtype)
     lo, hi = _checks.noise_interval(noise_lo, noise_hi, n, dtype)
+    check_model(params, traj)
     if _checks.is_concrete(th):
         outside = np.asarray((th < params.lo[None]) | (th > params.hi[None]))
         if outside.any():
@@ -380,6 +388,14 @@ def simulate(
             )
     runs = th.shape[0]
     shape = (runs, traj.n_steps + 1, n, 2)
+    needed = _ARRAYS_PER_RUN * math.prod(shape) * jnp.dtype(dtype).itemsize
+    if needed > MEMORY_BUDGET:
+        fit = max(1, MEMORY_BUDGET // (needed // runs))
+        raise _checks.ProblemTooLargeError(
+            f"simulating {runs} runs of {traj.n_steps + 1} steps needs about "
+            f"{needed / 2**30:.1f} GiB, over the {MEMORY_BUDGET / 2**30:g} GiB budget; pass "
+            f"th_true in batches of at most {fit} runs (empirical_thresholds: runs <= {fit})"
+        )
     uniform = jax.random.uniform(jax.random.PRNGKey(seed), shape, dtype)
     noise = jnp.broadcast_to(lo, shape) + jnp.broadcast_to(hi - lo, shape) * uniform
     traj, params = _checks.cast_tree(traj, dtype), _checks.cast_tree(params, dtype)

@@ -206,6 +206,11 @@ def trajectory(
     """
     if isinstance(paths, str) or callable(paths):
         paths = [paths]
+    if not isinstance(paths, (list, tuple)):
+        raise TypeError(
+            f"paths must be a path name {sorted(PATHS)}, a function of time, or a list of "
+            f"them (one per joint), got {paths!r}"
+        )
     paths = list(paths)
     if not paths:
         raise ValueError("paths must name at least one joint's path")

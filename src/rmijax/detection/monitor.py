@@ -26,7 +26,8 @@ from rmijax import _checks
 from rmijax.control import closed_loop_step, feedforward, servo_command
 from rmijax.methods.rmi import MODES, check_memory, window_constants, window_extremes
 from rmijax.methods.short_window import start_error_bounds, transition_powers
-from rmijax.robots.box import UncertainRobot
+from rmijax.robots.box import UncertainRobot, uncertain_indices
+from rmijax.robots.check import check_model
 
 __all__ = ["METHODS", "Monitor", "MonitorOutput", "MonitorState", "monitor"]
 
@@ -176,8 +177,9 @@ def monitor(
     kd = _checks.per_joint("kd", kd, n, dtype)
     _checks.check_stable(kp, kd, dt)
     lo, hi = _checks.noise_interval(noise_lo, noise_hi, n, dtype)
+    check_model(params)
     check_memory(params, mode=mode, window=window)  # one tick holds one end step's window
-    consts = window_constants(params, kp, kd, dt, window)
+    consts = window_constants(params, kp, kd, dt, window, uncertain=uncertain_indices(params))
     model = params.model
     measured_start = method == "short_window"
     if measured_start:

@@ -300,7 +300,7 @@ def linearized_bounds(
     traj, params = engine._cast(traj, params, dtype)
     n_end = traj.n_steps + 1
     batch = _batch(params, margin, dtype, n_end, chunk_size)
-    window = int(window)
+    window = min(int(window), traj.n_steps)  # a longer window gives the same windows
     concrete = all(_checks.is_concrete(a) for a in jax.tree_util.tree_leaves((traj, params)))
     if progress and concrete:
         bounds = _with_progress(traj, params, lo, hi, window, batch, margin)

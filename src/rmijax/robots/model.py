@@ -47,6 +47,10 @@ class RobotModel:
         structure: an optional declaration of how the parameters enter the
             dynamics (:mod:`rmijax.robots.structure`); exact RMI takes a
             faster search from it. None: every corner is evaluated.
+        trusted: skip :func:`rmijax.check_model` (the sanity check of ``M``,
+            ``h`` and ``forward_dynamics`` run before every band computation).
+            The library's own models set it (the test suite holds them to the
+            SPEC's oracles); set it only for a model you have tested yourself.
     """
 
     n_joints: int
@@ -57,10 +61,12 @@ class RobotModel:
     name: str = "robot"
     param_names: tuple[str, ...] = ()
     structure: object = None
+    trusted: bool = False
 
     def __post_init__(self):
         _checks.integer("n_joints", self.n_joints, minimum=1, unit="joints")
         _checks.integer("n_params", self.n_params, minimum=0, unit="parameters")
+        _checks.boolean("trusted", self.trusted)
         for name in ("mass_matrix", "bias"):
             if not callable(getattr(self, name)):
                 raise TypeError(

@@ -205,6 +205,7 @@ def planar_arm_model(n_links: int) -> RobotModel:
         name=f"planar_arm_{n}",
         param_names=names,
         structure=PlanarPointMass(),
+        trusted=True,
     )
 
 
