@@ -30,6 +30,7 @@ as a NaN reading always does in :func:`rmijax.detect`.
 from __future__ import annotations
 
 import dataclasses
+import pathlib
 import re
 
 import numpy as np
@@ -40,12 +41,14 @@ from rmijax.trajectory import Trajectory, trajectory_from_samples
 __all__ = [
     "DEFAULT_POSITION_LIMIT",
     "READING_RULES",
+    "REAL_ARM_BOX",
     "Log",
     "LogError",
     "assemble",
     "joint_limits",
     "joint_names",
     "resolve_robot",
+    "robot_joint_names",
 ]
 
 READING_RULES = ("hold", "nearest")
@@ -113,13 +116,24 @@ class Log:
 
 _PRESET = re.compile(r"^preset_?(\d+)$")
 
+REAL_ARM_BOX = dict(
+    mass=0.1,
+    payload=(0.0, 1.0),
+    friction=dict(viscous=(0.0, 0.5), coulomb=(0.0, 0.5)),
+)
+"""The box a real arm named to :func:`resolve_robot` gets (that of ``rmijax --robot``'s job,
+:data:`rmijax.apps.real_arm.DEFAULT_BOX`): link masses +-10 %, a 0-1 kg payload at the
+last link, viscous 0-0.5 N m s/rad and Coulomb 0-0.5 N m friction per joint."""
+
 
 def resolve_robot(robot) -> UncertainRobot:
     """An :class:`~rmijax.UncertainRobot` from itself or a name.
 
     Names: ``"paper_pendulum"``, ``"paper_arm2"``, ``"preset<n>"`` (the
-    ``n``-link planar preset) and, where :func:`rmijax.load_robot` exists, the
-    real arms it ships (``"panda"``, ...).
+    ``n``-link planar preset), the real arms :func:`rmijax.load_robot` ships
+    (``"panda"``, ``"iiwa14"``, ``"ur5e"``) or the path of a URDF/MJCF file,
+    loaded with the box :data:`REAL_ARM_BOX`; for another box pass your own
+    ``rmijax.load_robot(name, mass=..., payload=..., friction=...)``.
 
     Raises:
         ValueError: an unknown name (the message lists the known ones).
@@ -129,6 +143,8 @@ def resolve_robot(robot) -> UncertainRobot:
 
     if isinstance(robot, UncertainRobot):
         return robot
+    if isinstance(robot, pathlib.Path):
+        robot = str(robot)
     if not isinstance(robot, str):
         raise TypeError(
             f"robot must be a rmijax.UncertainRobot or a robot name, got {type(robot).__name__}"
@@ -142,13 +158,30 @@ def resolve_robot(robot) -> UncertainRobot:
     loader = getattr(rmijax, "load_robot", None)
     if loader is not None:
         try:
-            return loader(name)
+            return loader(name, **REAL_ARM_BOX)
         except (ValueError, KeyError, FileNotFoundError) as err:
             raise ValueError(f"unknown robot {name!r}: {err}") from err
     raise ValueError(
         f"unknown robot {name!r}; give 'paper_pendulum', 'paper_arm2', 'preset<n>' "
-        "(n links) or a rmijax.UncertainRobot"
+        "(n links), a real arm of rmijax.load_robot or a rmijax.UncertainRobot"
     )
+
+
+def robot_joint_names(robot) -> tuple[str, ...]:
+    """Joint names of a robot given as in :func:`resolve_robot`.
+
+    A real arm's name (or URDF/MJCF path) gives its chain's joint names
+    (:func:`rmijax.robots.loaders.load_chain`); anything else :func:`joint_names`.
+    """
+    if isinstance(robot, (str, pathlib.Path)) and not _PRESET.match(str(robot)):
+        if str(robot) not in ("paper_pendulum", "paper_arm2"):
+            try:
+                from rmijax.robots.loaders import load_chain
+            except ImportError:
+                load_chain = None
+            if load_chain is not None:
+                return tuple(load_chain(str(robot)).joint_names)
+    return joint_names(resolve_robot(robot))
 
 
 def joint_names(params: UncertainRobot) -> tuple[str, ...]:
@@ -296,6 +329,7 @@ def assemble(
     limit_margin: float = 0.5,
     dtype=None,
     source: dict | None = None,
+    names=None,
 ) -> Log:
     """Put a reference and readings, in the robot's joint order, on the grid (module docstring).
 
@@ -310,6 +344,7 @@ def assemble(
         limit_margin: rad beyond declared joint limits that still count as plausible.
         dtype: float dtype of the trajectory; default float64 with x64, else float32.
         source: facts about the file for ``Log.source``.
+        names: the robot's joint names in its order; default :func:`joint_names`.
 
     Raises:
         LogError: see the module docstring.
@@ -322,7 +357,9 @@ def assemble(
     max_gap = 10 * dt if max_gap is None else float(max_gap)
     if not max_gap > 0:
         raise ValueError(f"max_gap must be a positive time in s, got {max_gap!r}")
-    names = joint_names(params)
+    names = tuple(names) if names else joint_names(params)
+    if len(names) != params.n_joints:
+        raise ValueError(f"{len(names)} joint names for a {params.n_joints}-joint robot")
     n = len(names)
     source = dict(source or {})
     ref_t = _check_stamps("reference", reference_time)
