@@ -96,3 +96,34 @@ def test_missing_log_and_empty_folder_exit_2(tmp_path, capsys):
     assert "no such log" in capsys.readouterr().err
     assert cli.main(["check", str(tmp_path), "--robot", "preset2"]) == 2
     assert "holds no logs" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_real_arm_log(tmp_path):
+    """A Panda log (the real-arm job's move, stuck sensors on joint 4) checked by name."""
+    pytest.importorskip("rmijax.robots.loaders")
+    import numpy as np
+
+    from rmijax.apps import real_arm
+
+    params = rmijax.io.resolve_robot("panda")
+    traj = real_arm.pick_and_place(real_arm.home_pose("panda"), segment_time=0.05)
+    th_true = np.asarray(params.nominal) + 0.6 * (np.asarray(params.hi - params.nominal))
+    _, readings = rmijax.simulate(
+        traj, params, th_true, faults=[rmijax.Fault("stuck_sensors", 3, 0.2)]
+    )
+    path = rmijax.io.write_csv(
+        tmp_path / "panda.csv",
+        time=np.asarray(traj.t),
+        joint_names=rmijax.io.robot_joint_names("panda"),
+        q_d=traj.q_d,
+        qd_d=traj.qd_d,
+        qdd_d=traj.qdd_d,
+        readings=readings,
+    )
+    out = tmp_path / "out"
+    command = ["check", str(path), "--robot", "panda", "--method", "linearized"]
+    assert cli.main(command + ["--window", "20", "--out", str(out), "--no-progress"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["joint_names"][3] == "joint4" and report["alarm"]
+    assert report["first_alarm"]["time_s"] >= 0.2

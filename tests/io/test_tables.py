@@ -161,4 +161,28 @@ def test_robot_names_resolve():
     assert rmijax.io.resolve_robot("paper_pendulum").n_joints == 1
     arm = rmijax.paper_arm2()
     assert rmijax.io.resolve_robot(arm) is arm
-    assert rmijax.io.joint_names(arm) == ("joint1", "joint2")
+    assert rmijax.io.robot_joint_names(arm) == ("joint1", "joint2")
+
+
+def test_real_arm_log_matches_the_chain_joints(tmp_path):
+    """A Panda log (the real-arm job's move, nominal readings) reads by the chain's joint names."""
+    from rmijax.apps import real_arm
+    traj = real_arm.pick_and_place(real_arm.home_pose("panda"), segment_time=0.05)
+    names = rmijax.io.robot_joint_names("panda")
+    assert len(names) == 7 and names[0] == "joint1"
+    path = rmijax.io.write_csv(
+        tmp_path / "panda.csv",
+        time=np.asarray(traj.t),
+        joint_names=list(reversed(names)),  # columns in any order
+        q_d=np.asarray(traj.q_d)[:, ::-1],
+        qd_d=np.asarray(traj.qd_d)[:, ::-1],
+        qdd_d=np.asarray(traj.qdd_d)[:, ::-1],
+        readings=np.asarray(traj.x_n)[:, ::-1],
+    )
+    log = rmijax.read_log(path, robot="panda")
+    assert log.joint_names == names and log.robot.n_joints == 7
+    np.testing.assert_array_equal(log.readings, np.asarray(traj.x_n))
+    np.testing.assert_allclose(log.traj.x_n, traj.x_n, atol=1e-9)
+    renamed = ["shoulder", "upper_arm"] + list(names[2:])
+    with pytest.raises(LogError, match=r"joints \['shoulder', 'upper_arm'\] are not in the log"):
+        rmijax.read_log(path, robot="panda", joint_names=renamed)

@@ -92,7 +92,7 @@ def _parser():
 
 def _validate(args):
     """Every option checked before any work; raises _Refused with one line."""
-    from rmijax.io import is_bag, is_log, resolve_robot
+    from rmijax.io import is_bag, is_log, resolve_robot, robot_joint_names
 
     positive = {"--dt": args.dt, "--kp": args.kp, "--kd": args.kd}
     if args.max_gap is not None:
@@ -117,8 +117,9 @@ def _validate(args):
         raise _Refused(f"--mode per_joint does not apply to --method {args.method}")
     try:
         params = resolve_robot(args.robot)
-    except (ValueError, TypeError) as err:
-        raise _Refused(str(err)) from None
+        args.joint_names = robot_joint_names(args.robot)
+    except (ValueError, TypeError, FileNotFoundError, ImportError) as err:
+        raise _Refused(str(err).splitlines()[0]) from None
     from rmijax import _checks
 
     gains = [
@@ -439,6 +440,7 @@ def main(argv=None) -> int:
         max_gap=args.max_gap,
         joint_state_topic=args.joint_state_topic,
         reference_topic=args.reference_topic,
+        joint_names=args.joint_names,
     )
     settings = {
         "robot": args.robot,

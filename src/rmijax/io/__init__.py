@@ -14,8 +14,8 @@ from rmijax.io.log import (
     READING_RULES as READING_RULES,
     Log as Log,
     LogError as LogError,
-    joint_names as joint_names,
     resolve_robot as resolve_robot,
+    robot_joint_names as robot_joint_names,
 )
 from rmijax.io.ros import is_bag as is_bag, read_bag as read_bag
 from rmijax.io.tables import (
@@ -30,12 +30,12 @@ __all__ = [
     "Log",
     "LogError",
     "is_log",
-    "joint_names",
     "read_bag",
     "read_csv",
     "read_log",
     "read_npz",
     "resolve_robot",
+    "robot_joint_names",
     "write_csv",
     "write_npz",
 ]
@@ -59,6 +59,7 @@ def read_log(
     limit_margin: float = 0.5,
     joint_state_topic: str | None = None,
     reference_topic: str | None = None,
+    joint_names=None,
     dtype=None,
 ) -> Log:
     """Read a recorded run onto the controller's grid ``t_k = t_0 + k dt``.
@@ -76,6 +77,9 @@ def read_log(
         max_gap: longest interval (s) between samples that is bridged; default ``10 dt``.
         limit_margin: rad beyond the robot's joint limits that a position may lie.
         joint_state_topic, reference_topic: bag topics; default found by type.
+        joint_names: the robot's joint names in its order, as the log names them;
+            default the robot's own (:func:`robot_joint_names`: a real arm's chain,
+            ``joint1..jointn`` for the planar arms).
         dtype: float dtype of the trajectory (default float64 with x64, else float32).
 
     Returns:
@@ -86,6 +90,7 @@ def read_log(
         LogError: a log that cannot be a run of this robot (the message says why).
         FileNotFoundError, ImportError (bags without rosbags).
     """
+    names = tuple(joint_names) if joint_names is not None else robot_joint_names(robot)
     params = resolve_robot(robot)
     path = pathlib.Path(path)
     if not path.exists():
@@ -98,6 +103,7 @@ def read_log(
         max_gap=max_gap,
         limit_margin=limit_margin,
         dtype=dtype,
+        names=names,
     )
     if is_bag(path):
         return read_bag(

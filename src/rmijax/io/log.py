@@ -30,6 +30,7 @@ as a NaN reading always does in :func:`rmijax.detect`.
 from __future__ import annotations
 
 import dataclasses
+import pathlib
 import re
 
 import numpy as np
@@ -46,6 +47,7 @@ __all__ = [
     "joint_limits",
     "joint_names",
     "resolve_robot",
+    "robot_joint_names",
 ]
 
 READING_RULES = ("hold", "nearest")
@@ -118,18 +120,22 @@ def resolve_robot(robot) -> UncertainRobot:
     """An :class:`~rmijax.UncertainRobot` from itself or a name.
 
     Names: ``"paper_pendulum"``, ``"paper_arm2"``, ``"preset<n>"`` (the
-    ``n``-link planar preset) and, where :func:`rmijax.load_robot` exists, the
-    real arms it ships (``"panda"``, ``"iiwa14"``, ``"ur5e"``).
+    ``n``-link planar preset), the real arms :func:`rmijax.load_robot` ships
+    (``"panda"``, ``"iiwa14"``, ``"ur5e"``) or the path of a URDF/MJCF file,
+    loaded with the box :data:`rmijax.robots.loaders.REAL_ARM_BOX`; for another box pass your own
+    ``rmijax.load_robot(name, mass=..., payload=..., friction=...)``.
 
     Raises:
         ValueError: an unknown name (the message lists the known ones).
         TypeError: neither a name nor an UncertainRobot.
     """
     from rmijax.robots import planar
-    from rmijax.robots.loaders import SHIPPED, load_robot
+    from rmijax.robots.loaders import REAL_ARM_BOX, SHIPPED, load_robot
 
     if isinstance(robot, UncertainRobot):
         return robot
+    if isinstance(robot, pathlib.Path):
+        robot = str(robot)
     if not isinstance(robot, str):
         raise TypeError(
             f"robot must be a rmijax.UncertainRobot or a robot name, got {type(robot).__name__}"
@@ -140,12 +146,31 @@ def resolve_robot(robot) -> UncertainRobot:
     match = _PRESET.match(name)
     if match:
         return planar.preset_arm(int(match.group(1)))
-    if name in SHIPPED:
-        return load_robot(name)
-    raise ValueError(
-        f"unknown robot {name!r}; give 'paper_pendulum', 'paper_arm2', 'preset<n>' "
-        f"(n links), a shipped arm {SHIPPED} or a rmijax.UncertainRobot"
-    )
+    try:
+        return load_robot(name, **REAL_ARM_BOX)
+    except (ValueError, KeyError, FileNotFoundError) as err:
+        raise ValueError(
+            f"unknown robot {name!r}: {err}; give 'paper_pendulum', 'paper_arm2', "
+            f"'preset<n>' (n links), a shipped arm {SHIPPED}, a URDF/MJCF path or a "
+            "rmijax.UncertainRobot"
+        ) from err
+
+
+def robot_joint_names(robot) -> tuple[str, ...]:
+    """Joint names of a robot given as in :func:`resolve_robot`.
+
+    A real arm's name (or URDF/MJCF path) gives its chain's joint names
+    (:func:`rmijax.robots.loaders.load_chain`); anything else :func:`joint_names`.
+    """
+    if isinstance(robot, (str, pathlib.Path)) and not _PRESET.match(str(robot)):
+        if str(robot) not in ("paper_pendulum", "paper_arm2"):
+            try:
+                from rmijax.robots.loaders import load_chain
+            except ImportError:
+                load_chain = None
+            if load_chain is not None:
+                return tuple(load_chain(str(robot)).joint_names)
+    return joint_names(resolve_robot(robot))
 
 
 def joint_names(params: UncertainRobot) -> tuple[str, ...]:
@@ -293,6 +318,7 @@ def assemble(
     limit_margin: float = 0.5,
     dtype=None,
     source: dict | None = None,
+    names=None,
 ) -> Log:
     """Put a reference and readings, in the robot's joint order, on the grid (module docstring).
 
@@ -307,6 +333,7 @@ def assemble(
         limit_margin: rad beyond declared joint limits that still count as plausible.
         dtype: float dtype of the trajectory; default float64 with x64, else float32.
         source: facts about the file for ``Log.source``.
+        names: the robot's joint names in its order; default :func:`joint_names`.
 
     Raises:
         LogError: see the module docstring.
@@ -319,7 +346,9 @@ def assemble(
     max_gap = 10 * dt if max_gap is None else float(max_gap)
     if not max_gap > 0:
         raise ValueError(f"max_gap must be a positive time in s, got {max_gap!r}")
-    names = joint_names(params)
+    names = tuple(names) if names else joint_names(params)
+    if len(names) != params.n_joints:
+        raise ValueError(f"{len(names)} joint names for a {params.n_joints}-joint robot")
     n = len(names)
     source = dict(source or {})
     ref_t = _check_stamps("reference", reference_time)

@@ -275,7 +275,7 @@ def read_bag(
     """
     any_reader, stores, _, get_typestore = _rosbags()
     paths = _bag_paths(path)
-    robot = joint_names(params)
+    robot = resample.pop("names", None) or joint_names(params)
     ros1 = paths[0].is_file() and paths[0].suffix == ".bag"
     typestore = get_typestore(stores.ROS1_NOETIC if ros1 else stores.ROS2_HUMBLE)
     typestore.register(control_msgs_types(1 if ros1 else 2))
@@ -317,5 +317,6 @@ def read_bag(
         q=q,
         qd=qd,
         source=source,
+        names=robot,
         **resample,
     )

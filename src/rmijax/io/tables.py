@@ -64,7 +64,7 @@ def _columns(path):
 
 def read_csv(path, params, **resample) -> Log:
     """Read a CSV log (module docstring) for robot ``params``; ``resample`` goes to
-    :func:`rmijax.io.log.assemble` (``dt``, ``kp``, ``kd``, ``reading_rule``, ...)."""
+    :func:`rmijax.io.log.assemble` (``names``, ``dt``, ``kp``, ``kd``, ``reading_rule``, ...)."""
     path = pathlib.Path(path)
     header, data = _columns(path)
     if "time" not in header:
@@ -78,7 +78,7 @@ def read_csv(path, params, **resample) -> Log:
             per_joint.setdefault(joint, {})[quantity] = index
         else:
             ignored.append(name)
-    robot = joint_names(params)
+    robot = resample.pop("names", None) or joint_names(params)
     _, extra = match_joints(list(per_joint), robot, str(path))
     missing = [f"{q}/{j}" for j in robot for q in _REQUIRED if q not in per_joint[j]]
     if missing:
@@ -106,6 +106,7 @@ def read_csv(path, params, **resample) -> Log:
         q=take("q"),
         qd=take("qd"),
         source=dict(path=str(path), format="csv", ignored=ignored),
+        names=robot,
         **resample,
     )
 
@@ -121,7 +122,7 @@ def read_npz(path, params, **resample) -> Log:
             f"{path}: missing arrays {missing}; an NPZ log holds time, joint_names, q_d, qd_d, "
             "q, qd (and optionally qdd_d)"
         )
-    robot = joint_names(params)
+    robot = resample.pop("names", None) or joint_names(params)
     order, extra = match_joints(arrays["joint_names"].tolist(), robot, str(path))
     n_log = len(arrays["joint_names"])
     columns = {}
@@ -147,6 +148,7 @@ def read_npz(path, params, **resample) -> Log:
         q=columns["q"],
         qd=columns["qd"],
         source=dict(path=str(path), format="npz", ignored=ignored),
+        names=robot,
         **resample,
     )
 
