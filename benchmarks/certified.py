@@ -18,17 +18,15 @@ Example::
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
-import platform
-import subprocess
-import sys
 import time
 
 import jax
 import numpy as np
 
 jax.config.update("jax_enable_x64", True)
+
+from _common import run_meta  # noqa: E402
 
 import rmijax  # noqa: E402
 from rmijax.methods.certified import certified_bounds  # noqa: E402
@@ -133,21 +131,7 @@ def main(argv=None):
 
 
 def _write(args, rows):
-    try:
-        commit = subprocess.run(
-            ["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=False
-        ).stdout.strip()
-    except OSError:
-        commit = ""
-    record = dict(
-        command=" ".join([sys.executable, *sys.argv]),
-        git_commit=commit,
-        date=datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-        machine=f"{platform.node()} {platform.machine()} {platform.processor()}",
-        dtype="float64",
-        jax=jax.__version__,
-        rows=rows,
-    )
+    record = dict(meta=run_meta("benchmarks/certified.py", dtype="float64"), rows=rows)
     with open(args.json, "w") as handle:
         json.dump(record, handle, indent=1)
 
