@@ -16,6 +16,7 @@ PACKAGE = pathlib.Path(__file__).resolve().parents[1] / "src" / "rmijax"
 LAYERS = {
     "rmijax._checks": 0,
     "rmijax._linalg": 0,
+    "rmijax._intervals": 0,
     "rmijax.robots": 1,
     "rmijax.control": 2,
     "rmijax.trajectory": 2,

@@ -25,10 +25,15 @@ from rmijax.evaluation.worst_case import (
     worst_case as worst_case,
     worst_case_table as worst_case_table,
 )
+from rmijax.io import Log as Log, LogError as LogError, read_log as read_log
 from rmijax.methods.base import (
     Bounds as Bounds,
     DivergedError as DivergedError,
     ProblemTooLargeError as ProblemTooLargeError,
+)
+from rmijax.methods.certified import (
+    Certificate as Certificate,
+    certified_bounds as certified_bounds,
 )
 from rmijax.methods.dispatch import (
     DEFAULT_WINDOWS as DEFAULT_WINDOWS,
@@ -50,8 +55,10 @@ from rmijax.robots.box import (
     UncertainRobot as UncertainRobot,
     corner_tensor as corner_tensor,
     monte_carlo_parameters as monte_carlo_parameters,
+    uncertain_indices as uncertain_indices,
     uncertain_robot as uncertain_robot,
 )
+from rmijax.robots.check import ModelCheckError as ModelCheckError, check_model as check_model
 from rmijax.robots.loaders import SHIPPED as SHIPPED, load_robot as load_robot
 from rmijax.robots.model import GRAVITY as GRAVITY, RobotModel as RobotModel
 from rmijax.robots.planar import (
@@ -75,6 +82,7 @@ __version__ = "0.1.0"
 __all__ = [
     "AffineBias",
     "LinearDynamics",
+    "ModelCheckError",
     "DEFAULT_MEMORY_BUDGET",
     "DEFAULT_WINDOWS",
     "FAULT_KINDS",
@@ -86,9 +94,12 @@ __all__ = [
     "SCALABLE_METHODS",
     "SEARCHES",
     "Bounds",
+    "Certificate",
     "Detection",
     "DivergedError",
     "Fault",
+    "Log",
+    "LogError",
     "Monitor",
     "MonitorOutput",
     "MonitorState",
@@ -98,6 +109,8 @@ __all__ = [
     "UncertainRobot",
     "WorstCase",
     "bounds",
+    "certified_bounds",
+    "check_model",
     "closed_loop_step",
     "containment",
     "corner_tensor",
@@ -114,11 +127,13 @@ __all__ = [
     "planar_arm",
     "planar_arm_model",
     "preset_arm",
+    "read_log",
     "rmi",
     "rmi_step",
     "simulate",
     "trajectory",
     "trajectory_from_samples",
+    "uncertain_indices",
     "uncertain_robot",
     "waypoint_trajectory",
     "worst_case",

@@ -12,6 +12,46 @@ import jax.numpy as jnp
 import numpy as np
 
 
+class ProblemTooLargeError(MemoryError):
+    """The problem cannot be done here: one batch exceeds the memory budget, or the
+    estimated run time is hours where the caller asked for no progress bar.
+
+    The message gives the estimate and the fixes. Re-exported as
+    ``rmijax.ProblemTooLargeError``.
+    """
+
+
+MAX_SILENT_SECONDS = 600.0
+"""Longest estimated run (s) a method starts without ``progress=True``."""
+
+
+def check_time(what, seconds, *, progress, fixes):
+    """Refuse, at once, a run estimated over :data:`MAX_SILENT_SECONDS` without a progress bar.
+
+    Args:
+        what: the work, e.g. ``"constant_corners: 16777216 corners x 1501 steps"``.
+        seconds: the estimate, taken optimistic (a fast machine): a refusal
+            means the run is hopeless here, not merely slow.
+        progress: the caller's ``progress`` flag; True runs it anyway (the bar
+            shows the real ETA).
+        fixes: what to change instead, one sentence.
+    """
+    if progress or seconds <= MAX_SILENT_SECONDS:
+        return
+    raise ProblemTooLargeError(
+        f"{what} would take at least {_duration(seconds)} (estimated for a fast machine, "
+        f"before starting). {fixes} Or pass progress=True to run it anyway with a "
+        "progress bar and its ETA."
+    )
+
+
+def _duration(seconds):
+    for unit, size in (("days", 86400.0), ("hours", 3600.0), ("minutes", 60.0)):
+        if seconds >= 2 * size:
+            return f"{seconds / size:.3g} {unit}"
+    return f"{seconds:.3g} s"
+
+
 def is_concrete(value) -> bool:
     """True when ``value`` holds actual numbers (not a JAX tracer)."""
     return not isinstance(value, jax.core.Tracer)
@@ -28,6 +68,12 @@ def float_array(name, value, shape, *, dtype=None):
         dtype = getattr(value, "dtype", None)
         if dtype is None or not jnp.issubdtype(dtype, jnp.floating):
             dtype = default_float()
+        elif jnp.dtype(dtype).itemsize < 4:  # float16 inputs: computed in the default float
+            dtype = jnp.promote_types(dtype, default_float())
+    else:
+        dtype = float_dtype(dtype)
+    if isinstance(value, (str, bytes)):
+        raise TypeError(f"{name} must be an array of numbers, got {value!r}")
     try:
         array = jnp.asarray(value, dtype=dtype)
     except (TypeError, ValueError) as err:
@@ -65,9 +111,23 @@ def first_non_finite(*arrays):
     return tuple(int(i) for i in np.argwhere(~finite)[0])
 
 
+def numbers(name, value, dtype):
+    """``value`` as a JAX array of ``dtype``; strings and other non-numbers refused by name."""
+    if isinstance(value, (str, bytes)) or (
+        hasattr(value, "dtype")
+        and not jnp.issubdtype(value.dtype, jnp.number)
+        and not jnp.issubdtype(value.dtype, jnp.bool_)
+    ):
+        raise TypeError(f"{name} must be a number or an array of numbers, got {value!r}")
+    try:
+        return jnp.asarray(value, dtype=dtype)
+    except (TypeError, ValueError) as err:
+        raise TypeError(f"{name} must be a number or an array of numbers, got {value!r}") from err
+
+
 def per_joint(name, value, n, dtype):
     """A scalar or ``(n,)`` gain as an ``(n,)`` array."""
-    array = jnp.asarray(value, dtype=dtype)
+    array = numbers(name, value, dtype)
     if array.ndim == 0:
         array = jnp.full((n,), array, dtype=dtype)
     if array.shape != (n,):
@@ -111,7 +171,7 @@ def check_stable(kp, kd, dt):
 
 def noise_bounds(name, value, n, dtype):
     """Sensor-noise bound as an ``(n, 2)`` array, from a scalar, ``(2,)`` or ``(n, 2)``."""
-    array = jnp.asarray(value, dtype=dtype)
+    array = numbers(name, value, dtype)
     if array.shape == ():
         array = jnp.full((n, 2), array, dtype=dtype)
     elif array.shape == (2,):
@@ -143,19 +203,104 @@ def noise_interval(noise_lo, noise_hi, n, dtype):
 
 def positive_int(name, value, unit="") -> int:
     """``value`` as an int >= 1 (bools refused), or an error naming ``name``."""
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-        what = f"an integer number of {unit} >= 1" if unit else "an integer >= 1"
+    return integer(name, value, minimum=1, unit=unit)
+
+
+def integer(name, value, *, minimum=None, unit="") -> int:
+    """``value`` as a Python int (a real integer type, bools refused), ``>= minimum``.
+
+    A float such as ``2.0`` or ``2.7`` and a string such as ``"3"`` are refused,
+    not coerced: a count that is not an integer is a mistake somewhere upstream.
+    """
+    ok = not isinstance(value, bool) and isinstance(value, (int, np.integer))
+    if not ok or (minimum is not None and value < minimum):
+        what = f"an integer number of {unit}" if unit else "an integer"
+        if minimum is not None:
+            what += f" >= {minimum}"
         raise ValueError(f"{name} must be {what}, got {value!r}")
     return int(value)
 
 
+def real(name, value, *, minimum=None, positive=False, unit="") -> float:
+    """``value`` as a finite Python float (real numbers only: strings and bools refused).
+
+    Args:
+        minimum: refuse values below it; positive: refuse values <= 0.
+        unit: named in the message (``"s"``, ``"bytes"``).
+    """
+    ok = not isinstance(value, bool) and isinstance(value, (int, float, np.integer, np.floating))
+    if ok and np.ndim(value) == 0:
+        number = float(value)
+        ok = np.isfinite(number)
+        ok = ok and (minimum is None or number >= minimum) and (not positive or number > 0)
+    if not ok:
+        what = "a finite number"
+        if positive:
+            what = "a positive finite number"
+        elif minimum is not None:
+            what = f"a finite number >= {minimum:g}"
+        if unit:
+            what += f" (in {unit})"
+        raise ValueError(f"{name} must be {what}, got {value!r}")
+    return number
+
+
+def boolean(name, value) -> bool:
+    """``value`` as a bool: only True/False (and NumPy bools) are accepted."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise ValueError(f"{name} must be True or False, got {value!r}")
+    return bool(value)
+
+
+def memory_budget(value) -> int:
+    """A memory budget in bytes: a positive finite number (``4 * 2**30`` is 4 GiB)."""
+    ok = not isinstance(value, bool) and isinstance(value, (int, float, np.integer, np.floating))
+    if not ok or not np.isfinite(value) or value < 1:
+        raise ValueError(
+            f"memory_budget must be a positive number of bytes (e.g. 4 * 2**30 for 4 GiB), "
+            f"got {value!r}"
+        )
+    return int(value)
+
+
+def seed(value) -> int:
+    """A random seed: an integer >= 0."""
+    return integer("seed", value, minimum=0)
+
+
+def chunk_size(value, unit) -> int | None:
+    """``None`` or an integer >= 1 (``unit``: what a chunk counts, e.g. ``"end steps"``)."""
+    if value is None:
+        return None
+    return integer("chunk_size", value, minimum=1, unit=unit)
+
+
 def tolerance(tol) -> float:
     """A detection tolerance: finite and >= 0."""
-    if not (np.isfinite(tol) and tol >= 0):
-        raise ValueError(f"tol must be a finite number >= 0, got {tol!r}")
-    return float(tol)
+    return real("tol", tol, minimum=0)
 
 
 def cast_tree(tree, dtype):
     """Every array leaf of a pytree as ``dtype``."""
     return jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), tree)
+
+
+def float_dtype(dtype):
+    """The ``dtype`` option: None (the default float) or a floating dtype, else an error."""
+    if dtype is None:
+        return default_float()
+    try:
+        resolved = jnp.dtype(dtype)
+    except TypeError as err:
+        raise TypeError(f"dtype must be a float dtype such as jnp.float64, got {dtype!r}") from err
+    if not jnp.issubdtype(resolved, jnp.floating):
+        raise TypeError(
+            f"dtype must be a float dtype (jnp.float32 or jnp.float64), got {resolved}; "
+            "the dynamics are not defined on integers"
+        )
+    if resolved.itemsize < 4:
+        raise TypeError(
+            f"dtype {resolved} is too coarse for the dynamics (the corner tie tolerance "
+            "alone is eps^(2/3) ~ 1e-2); use jnp.float32 or jnp.float64"
+        )
+    return resolved

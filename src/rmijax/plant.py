@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 import warnings
 
 import jax
@@ -19,6 +20,7 @@ import numpy as np
 from rmijax import _checks
 from rmijax.control import computed_torque, servo_command
 from rmijax.robots.box import UncertainRobot
+from rmijax.robots.check import check_model
 from rmijax.trajectory import Trajectory
 
 __all__ = ["FAULT_KINDS", "DIVERGENCE_LIMIT", "Fault", "simulate"]
@@ -34,10 +36,18 @@ FAULT_KINDS = (
 )
 """Fault kinds: sensor faults change readings, motor faults change the plant."""
 
+MEMORY_BUDGET = 4 * 2**30
+"""Bytes a batch of runs may hold (noise, states, readings and their masked copies)."""
+
+_ARRAYS_PER_RUN = 6
+
 DIVERGENCE_LIMIT = 1e4
 """|q| (rad) or |qd| (rad/s) beyond which a faulty plant counts as diverged."""
 
 _NEVER = np.iinfo(np.int32).max
+
+_SENSOR_OFFSETS = ("bias", "drift")
+_MOTOR_FAULTS = ("free_swinging", "locked")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -56,25 +66,59 @@ class Fault:
         joint: 0-based joint index.
         onset: time in s; the onset step is ``round(onset / dt)``.
         value: offset (rad or rad/s) for ``bias``, rate (rad/s or rad/s^2)
-            for ``drift``; unused otherwise.
-        sensor: 0 encoder, 1 tachometer (``bias`` and ``drift`` only).
+            for ``drift`` (default 0); refused for the other kinds.
+        sensor: 0 encoder, 1 tachometer for ``bias`` and ``drift`` (default
+            0); refused for the other kinds, whose outputs the kind names.
     """
 
     kind: str
     joint: int
     onset: float
-    value: float = 0.0
-    sensor: int = 0
+    value: float | None = None
+    sensor: int | None = None
 
     def __post_init__(self):
         if self.kind not in FAULT_KINDS:
             raise ValueError(f"unknown fault kind {self.kind!r}; choose one of {FAULT_KINDS}")
-        if self.sensor not in (0, 1):
+        _checks.integer("Fault joint", self.joint, minimum=0)
+        _checks.real("Fault onset", self.onset, minimum=0, unit="s")
+        if self.kind in _SENSOR_OFFSETS:
+            value = 0.0 if self.value is None else _checks.real("Fault value", self.value)
+            sensor = 0 if self.sensor is None else self.sensor
+            if isinstance(sensor, bool) or sensor not in (0, 1):
+                raise ValueError(
+                    f"Fault sensor must be 0 (encoder) or 1 (tachometer), got {self.sensor!r}"
+                )
+            object.__setattr__(self, "value", value)
+            object.__setattr__(self, "sensor", int(sensor))
+            return
+        if self.sensor is not None:
+            which = {
+                "stuck_encoder": "acts on the encoder (use stuck_tach for the tachometer)",
+                "stuck_tach": "acts on the tachometer (use stuck_encoder for the encoder)",
+                "stuck_sensors": "acts on both sensors",
+            }.get(self.kind, "is a motor fault and changes no reading")
             raise ValueError(
-                f"Fault sensor must be 0 (encoder) or 1 (tachometer), got {self.sensor!r}"
+                f"Fault sensor means nothing for kind {self.kind!r}, which {which}; "
+                "leave sensor out (it is for bias and drift)"
             )
-        if not np.isfinite(self.onset) or not np.isfinite(self.value):
-            raise ValueError(f"Fault onset and value must be finite, got {self}")
+        if self.value is not None:
+            raise ValueError(
+                f"Fault value means nothing for kind {self.kind!r} (it is the offset of bias "
+                "and the rate of drift); leave value out"
+            )
+
+    @property
+    def outputs(self) -> tuple[tuple[int, int], ...]:
+        """The readings ``(joint, sensor)`` this fault changes; () for a motor fault."""
+        sensors = {
+            "stuck_encoder": (0,),
+            "stuck_tach": (1,),
+            "stuck_sensors": (0, 1),
+            "bias": (self.sensor,),
+            "drift": (self.sensor,),
+        }.get(self.kind, ())
+        return tuple((self.joint, s) for s in sensors)
 
     @property
     def label(self) -> str:
@@ -111,9 +155,26 @@ def _fault_tables(faults, n, n_steps, dt, dtype):
         "free_onset": np.full((n,), _NEVER),
         "lock_onset": np.full((n,), _NEVER),
     }
+    claimed = {}  # output (joint, sensor) or joint (motor) -> index of the fault on it
     for index, fault in enumerate(faults):
         if not isinstance(fault, Fault):
             raise TypeError(f"faults[{index}] must be a rmijax.Fault, got {fault!r}")
+        targets = fault.outputs if fault.kind not in _MOTOR_FAULTS else (("motor", fault.joint),)
+        for target in targets:
+            if target in claimed:
+                other = faults[claimed[target]]
+                where = (
+                    f"the motor of joint {fault.joint}"
+                    if target[0] == "motor"
+                    else f"joint {target[0]} {('encoder', 'tachometer')[target[1]]}"
+                )
+                raise ValueError(
+                    f"faults[{claimed[target]}] ({other.kind}) and faults[{index}] "
+                    f"({fault.kind}) both act on {where}; one would silently override the "
+                    "other. Give at most one sensor fault per output and one motor fault "
+                    "per joint (run the combinations as separate simulations)"
+                )
+            claimed[target] = index
         if not (isinstance(fault.joint, (int, np.integer)) and 0 <= fault.joint < n):
             raise ValueError(
                 f"faults[{index}] ({fault.kind}) names joint {fault.joint!r}, but the robot "
@@ -294,8 +355,10 @@ def simulate(
         raise ValueError(
             f"traj has {n} joints but params describes a {params.n_joints}-joint robot"
         )
+    seed = _checks.seed(seed)
+    divergence_limit = _checks.real("divergence_limit", divergence_limit, positive=True)
     dtype = jnp.result_type(traj.dtype, params.dtype)
-    th = jnp.asarray(th_true, dtype)
+    th = _checks.numbers("th_true", th_true, dtype)
     single = th.ndim == 1
     if th.ndim not in (1, 2) or th.shape[-1] != p:
         raise ValueError(
@@ -306,8 +369,11 @@ def simulate(
     _checks.check_finite("th_true", th)
     if isinstance(faults, Fault):
         faults = (faults,)
+    if not isinstance(faults, (list, tuple)):
+        raise TypeError(f"faults must be a Fault or a list of Faults, got {faults!r}")
     tables = _fault_tables(tuple(faults), n, traj.n_steps, traj.dt, dtype)
     lo, hi = _checks.noise_interval(noise_lo, noise_hi, n, dtype)
+    check_model(params, traj)
     if _checks.is_concrete(th):
         outside = np.asarray((th < params.lo[None]) | (th > params.hi[None]))
         if outside.any():
@@ -322,6 +388,14 @@ def simulate(
             )
     runs = th.shape[0]
     shape = (runs, traj.n_steps + 1, n, 2)
+    needed = _ARRAYS_PER_RUN * math.prod(shape) * jnp.dtype(dtype).itemsize
+    if needed > MEMORY_BUDGET:
+        fit = max(1, MEMORY_BUDGET // (needed // runs))
+        raise _checks.ProblemTooLargeError(
+            f"simulating {runs} runs of {traj.n_steps + 1} steps needs about "
+            f"{needed / 2**30:.1f} GiB, over the {MEMORY_BUDGET / 2**30:g} GiB budget; pass "
+            f"th_true in batches of at most {fit} runs (empirical_thresholds: runs <= {fit})"
+        )
     uniform = jax.random.uniform(jax.random.PRNGKey(seed), shape, dtype)
     noise = jnp.broadcast_to(lo, shape) + jnp.broadcast_to(hi - lo, shape) * uniform
     traj, params = _checks.cast_tree(traj, dtype), _checks.cast_tree(params, dtype)

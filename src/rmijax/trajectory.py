@@ -121,7 +121,7 @@ def trajectory_from_samples(q_d, qd_d, qdd_d, *, dt, kp=100.0, kd=20.0, labels=N
         ValueError: on shape mismatches, NaN/inf samples, ``T < 1``, a
             non-positive ``dt`` or unstable gains.
     """
-    q_d = jnp.asarray(q_d)
+    q_d = _checks.numbers("q_d", q_d, None)
     if q_d.ndim != 2:
         raise ValueError(f"q_d must have shape (T+1, n), got shape {q_d.shape}")
     dtype = q_d.dtype if jnp.issubdtype(q_d.dtype, jnp.floating) else _checks.default_float()
@@ -131,7 +131,7 @@ def trajectory_from_samples(q_d, qd_d, qdd_d, *, dt, kp=100.0, kd=20.0, labels=N
     n_samples, n = q_d.shape
     if n_samples < 2:
         raise ValueError(f"q_d needs at least 2 samples (T >= 1), got {n_samples}")
-    dt = float(dt)
+    dt = _checks.real("dt", dt, positive=True, unit="s")
     kp = _checks.per_joint("kp", kp, n, dtype)
     kd = _checks.per_joint("kd", kd, n, dtype)
     _checks.check_stable(kp, kd, dt)
@@ -206,14 +206,18 @@ def trajectory(
     """
     if isinstance(paths, str) or callable(paths):
         paths = [paths]
+    if not isinstance(paths, (list, tuple)):
+        raise TypeError(
+            f"paths must be a path name {sorted(PATHS)}, a function of time, or a list of "
+            f"them (one per joint), got {paths!r}"
+        )
     paths = list(paths)
     if not paths:
         raise ValueError("paths must name at least one joint's path")
-    dtype = dtype or _checks.default_float()
-    dt = float(dt)
-    if not (np.isfinite(dt) and dt > 0):
-        raise ValueError(f"dt must be a positive finite step in s, got {dt!r}")
-    n_steps = int(round(float(duration) / dt))
+    dtype = _checks.float_dtype(dtype)
+    dt = _checks.real("dt", dt, positive=True, unit="s")
+    duration = _checks.real("duration", duration, positive=True, unit="s")
+    n_steps = int(round(duration / dt))
     if n_steps < 1:
         raise ValueError(
             f"duration={duration!r} s with dt={dt!r} s gives {n_steps} steps; "

@@ -48,7 +48,9 @@ def test_cli_help_and_bad_onset(capsys):
     with pytest.raises(SystemExit) as info:
         cli.main(["--help"])
     assert info.value.code == 0 and "--persistence" in capsys.readouterr().out
-    assert cli.main(["--quick", "--onset", "7", "--out", "/tmp/unused-rmijax"]) == 2
+    with pytest.raises(SystemExit) as info:
+        cli.main(["--quick", "--onset", "7", "--out", "/tmp/unused-rmijax"])
+    assert info.value.code == 2 and "--onset must lie inside" in capsys.readouterr().err
 
 
 def test_plots_draw_every_panel(tmp_path):

@@ -324,7 +324,7 @@ def small():
         (dict(noise_lo=0.1, noise_hi=0.0), ValueError, "noise_lo > noise_hi for joint 0"),
         (dict(noise_hi=[0.0, np.inf]), ValueError, "noise_hi contains a non-finite"),
         (dict(memory_budget=10_000), rmijax.ProblemTooLargeError, "even at chunk size 1"),
-        (dict(chunk_size=0), ValueError, "chunk_size must be >= 1"),
+        (dict(chunk_size=0), ValueError, "chunk_size must be an integer number of end steps >= 1"),
     ],
 )
 def test_bad_arguments(small, kwargs, error, match):
@@ -349,7 +349,7 @@ def test_bad_inputs(small):
         rmijax.rmi(unstable, params)
     with pytest.raises(ValueError, match=r"t_f=51 is outside .*\[0, 50\]"):
         rmijax.rmi_step(traj, params, 51)
-    with pytest.raises(ValueError, match="t_f must be an integer"):
+    with pytest.raises(TypeError, match="t_f must be an integer"):
         rmijax.rmi_step(traj, params, 3.5)
 
 

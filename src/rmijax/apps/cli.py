@@ -2,12 +2,15 @@
 
 rmijax --out rmijax-output          # the default run (a minute or two on 2 cores)
 rmijax --quick --out /tmp/smoke     # 6 s runs, fewer draws: a smoke test
+rmijax check LOG --robot NAME       # reports for recorded logs (rmijax.apps.check)
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
+import os
 import pathlib
 import sys
 import time
@@ -22,8 +25,15 @@ METHOD_TITLES = {
 }
 
 
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose every error is one line on stderr and exit code 2."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def _parser():
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="rmijax",
         description=(
             "Reproduce the paper's RMI experiments: pendulum and two-joint bands "
@@ -32,6 +42,7 @@ def _parser():
             "thresholds) and containment of constant-parameter runs. Writes PNGs, "
             "report.json and report.md to --out."
         ),
+        epilog="Recorded logs: rmijax check LOG --robot NAME --out DIR (rmijax check --help).",
     )
     parser.add_argument("--out", default="rmijax-output", help="output folder (created)")
     parser.add_argument(
@@ -139,10 +150,77 @@ def _pct(value):
     return f"{100 * value:.2f}%"
 
 
+def _check_options(parser, args):
+    """Validate every option before any work: a bad one ends in ``parser.error`` (exit 2)."""
+    duration = 6.0 if args.quick else 15.0
+    if args.draws is not None and args.draws < 0:
+        parser.error(f"--draws must be an integer >= 0 (uniform draws), got {args.draws}")
+    if args.runs < 1:
+        parser.error(f"--runs must be an integer >= 1 (fault-free runs), got {args.runs}")
+    if not (math.isfinite(args.safety) and args.safety > 0):
+        parser.error(f"--safety must be a positive finite factor, got {args.safety}")
+    if not (math.isfinite(args.onset) and 0 < args.onset < duration):
+        parser.error(
+            f"--onset must lie inside the {duration:g} s run (0 < onset < {duration:g}), "
+            f"got {args.onset}"
+        )
+    if args.persistence < 1:
+        parser.error(
+            f"--persistence must be an integer >= 1 (consecutive steps), got {args.persistence}"
+        )
+    out = pathlib.Path(args.out)
+    if out.exists() and not out.is_dir():
+        parser.error(f"--out {str(out)!r} is an existing file; give a folder (it is created)")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        parser.error(f"--out {str(out)!r} cannot be created: {err.strerror or err}")
+    if not os.access(out, os.W_OK):
+        parser.error(f"--out {str(out)!r} is not writable")
+    return duration, out
+
+
 def main(argv=None) -> int:
-    args = _parser().parse_args(argv)
+    """Run the paper's experiments (or, with --robot, the real-arm job; ``check``: logs).
+
+    Every failure is one line on stderr and exit code 2.
+    """
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv and argv[0] == "check":  # `rmijax check LOG ...`: reports for recorded logs
+        from rmijax.apps.check import main as check
+
+        return check(argv[1:])
+    parser = _parser()
+    args = parser.parse_args(argv)
+    duration, out = _check_options(parser, args)
     if args.robot is not None:
-        return _real_arm(args)
+
+        def job():
+            return _real_arm(args)
+
+    else:
+
+        def job():
+            return _run(args, duration, out)
+
+    try:
+        return job()
+    except KeyboardInterrupt:
+        print(f"{parser.prog}: interrupted", file=sys.stderr)
+        return 130
+    except Exception as err:  # one line, never a traceback (RMIJAX_TRACEBACK=1 shows it)
+        if os.environ.get("RMIJAX_TRACEBACK"):
+            raise
+        first = str(err).strip().splitlines()[0] if str(err).strip() else ""
+        print(
+            f"{parser.prog}: error: {type(err).__name__}: {first} "
+            "(set RMIJAX_TRACEBACK=1 for the traceback)",
+            file=sys.stderr,
+        )
+        return 2
+
+
+def _run(args, duration, out) -> int:
     import jax
 
     if not args.float32:
@@ -157,13 +235,7 @@ def main(argv=None) -> int:
     from rmijax.detection.detect import detect
     from rmijax.plant import Fault, simulate
 
-    duration = 6.0 if args.quick else 15.0
     draws = args.draws if args.draws is not None else (20 if args.quick else 100)
-    if not 0 < args.onset < duration:
-        print(f"--onset must lie inside the {duration:g} s run", file=sys.stderr)
-        return 2
-    out = pathlib.Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
     report = {
         "settings": {

@@ -23,7 +23,7 @@ from rmijax.detection.suite import default_fault_suite
 from rmijax.methods.dispatch import bounds
 from rmijax.plant import simulate
 from rmijax.robots.box import UncertainRobot
-from rmijax.robots.loaders import SHIPPED, description_path, load_robot
+from rmijax.robots.loaders import REAL_ARM_BOX, SHIPPED, description_path, load_robot
 from rmijax.trajectory import Trajectory, waypoint_trajectory
 
 __all__ = [
@@ -36,13 +36,8 @@ __all__ = [
     "run",
 ]
 
-DEFAULT_BOX = dict(
-    mass=0.1,
-    payload=(0.0, 1.0),
-    friction=dict(viscous=(0.0, 0.5), coulomb=(0.0, 0.5)),
-)
-"""The uncertain box of the job: link masses +-10 %, 0-1 kg payload at the last link,
-viscous 0-0.5 N m s/rad and Coulomb 0-0.5 N m friction per joint (nominal at midpoints)."""
+DEFAULT_BOX = REAL_ARM_BOX
+"""The uncertain box of the job (:data:`rmijax.robots.loaders.REAL_ARM_BOX`)."""
 
 METHODS = ("rmi", "linearized", "empirical")
 """Band methods the job compares by default."""

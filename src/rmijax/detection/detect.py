@@ -129,20 +129,27 @@ def detect(
     Returns:
         A :class:`Detection`.
     """
+    _check_bounds(bounds)
     lower = np.asarray(bounds.lower)
-    y = np.asarray(y_meas, dtype=np.float64)
+    y = np.asarray(_checks.numbers("y_meas", y_meas, None), dtype=np.float64)
     if lower.ndim != 3 or y.shape != lower.shape:
         raise ValueError(
             f"y_meas must have the bounds' shape {lower.shape} (T+1, n, 2), got {y.shape}"
         )
-    dt = bounds.dt if dt is None else float(dt)
-    if dt is None:
+    if dt is None and bounds.dt is None:
         raise ValueError("these bounds carry no step: pass dt= (s)")
+    dt = bounds.dt if dt is None else _checks.real("dt", dt, positive=True, unit="s")
+    if bounds.dt is not None and not np.isclose(dt, bounds.dt, rtol=1e-9, atol=0.0):
+        raise ValueError(
+            f"dt={dt!r} s disagrees with the step of the bounds ({bounds.dt!r} s); leave dt "
+            "out to use the bounds' own step"
+        )
     persistence = _checks.positive_int("persistence", persistence)
     tol = _checks.tolerance(tol)
     n_samples = y.shape[0]
     start = 0
     if onset is not None:
+        onset = _checks.real("onset", onset, minimum=0, unit="s")
         start = int(round(onset / dt))
         if not 0 <= start < n_samples:
             raise ValueError(
@@ -177,6 +184,14 @@ def detect(
     )
 
 
+def _check_bounds(bounds):
+    if not isinstance(bounds, Bounds):
+        raise TypeError(
+            "bounds must be a rmijax.Bounds (from rmijax.rmi or rmijax.bounds), got "
+            f"{type(bounds).__name__}"
+        )
+
+
 def containment(states, bounds: Bounds, *, tol: float = 1e-9) -> dict:
     """How well bands contain runs of the true plant (SPEC section 7).
 
@@ -190,9 +205,16 @@ def containment(states, bounds: Bounds, *, tol: float = 1e-9) -> dict:
         ``worst``: worst violation as a fraction of the band width (where the
         width is > 0); ``runs``: R.
     """
-    x = np.asarray(states, dtype=np.float64)
+    _check_bounds(bounds)
+    tol = _checks.tolerance(tol)
+    x = np.asarray(_checks.numbers("states", states, None), dtype=np.float64)
     if x.ndim == 3:
         x = x[None]
+    if x.ndim != 4 or x.shape[1:] != np.shape(bounds.lower):
+        raise ValueError(
+            f"states must have shape (R, T+1, n, 2) or (T+1, n, 2) matching the bounds "
+            f"{np.shape(bounds.lower)}, got {np.shape(states)}"
+        )
     lower = np.asarray(bounds.lower, np.float64)[None]
     upper = np.asarray(bounds.upper, np.float64)[None]
     violation = np.maximum(np.maximum(lower - x, x - upper), 0.0)

@@ -26,7 +26,8 @@ from rmijax import _checks
 from rmijax.control import closed_loop_step, feedforward, servo_command
 from rmijax.methods.rmi import MODES, check_memory, window_constants, window_extremes
 from rmijax.methods.short_window import start_error_bounds, transition_powers
-from rmijax.robots.box import UncertainRobot
+from rmijax.robots.box import UncertainRobot, uncertain_indices
+from rmijax.robots.check import check_model
 
 __all__ = ["METHODS", "Monitor", "MonitorOutput", "MonitorState", "monitor"]
 
@@ -55,6 +56,8 @@ class MonitorState:
             ``k <= N`` (``short_window``; zeros for ``rmi``).
         run_length: (n, 2) int32 consecutive out-of-band ticks per output.
         first_alarm: int32 tick of the first alarm so far, -1 if none.
+        invalid_left: int32 ticks still flagged ``desired_invalid`` after a
+            non-finite desired sample (0 when none is in the window).
     """
 
     tick: jax.Array
@@ -67,6 +70,7 @@ class MonitorState:
     y_first: jax.Array
     run_length: jax.Array
     first_alarm: jax.Array
+    invalid_left: jax.Array
 
 
 class MonitorOutput(NamedTuple):
@@ -81,6 +85,14 @@ class MonitorOutput(NamedTuple):
         nan_reading: bool, the reading was NaN (counts as outside).
         first_alarm: int32 tick of the first alarm so far, -1 if none.
         tick: int32 this tick ``k``.
+        desired_invalid: bool scalar, a desired sample (``q_d``, ``qd_d``,
+            ``qdd_d``) of this tick or of the last ``window`` ticks was NaN/inf
+            (only possible inside ``jit``; outside it is refused). The bounds
+            are then NaN and nothing alarms: the monitor cannot know what the
+            controller did; it is its own condition, not a fault. The
+            non-finite sample's feed-forward is replaced by the previous tick's
+            so the nominal stays finite, and the flag clears once the window
+            has passed the sample.
     """
 
     lower: jax.Array
@@ -91,6 +103,7 @@ class MonitorOutput(NamedTuple):
     nan_reading: jax.Array
     first_alarm: jax.Array
     tick: jax.Array
+    desired_invalid: jax.Array
 
 
 class Monitor(NamedTuple):
@@ -158,13 +171,15 @@ def monitor(
     window = _checks.positive_int("window", window, "ticks")
     persistence = _checks.positive_int("persistence", persistence)
     tol = _checks.tolerance(tol)
-    n, dtype, dt = params.n_joints, params.dtype, float(dt)
+    n, dtype = params.n_joints, params.dtype
+    dt = _checks.real("dt", dt, positive=True, unit="s")
     kp = _checks.per_joint("kp", kp, n, dtype)
     kd = _checks.per_joint("kd", kd, n, dtype)
     _checks.check_stable(kp, kd, dt)
     lo, hi = _checks.noise_interval(noise_lo, noise_hi, n, dtype)
+    check_model(params)
     check_memory(params, mode=mode, window=window)  # one tick holds one end step's window
-    consts = window_constants(params, kp, kd, dt, window)
+    consts = window_constants(params, kp, kd, dt, window, uncertain=uncertain_indices(params))
     model = params.model
     measured_start = method == "short_window"
     if measured_start:
@@ -186,6 +201,7 @@ def monitor(
             y_first=jnp.zeros((n, 2), dtype),
             run_length=jnp.zeros((n, 2), jnp.int32),
             first_alarm=jnp.full((), -1, jnp.int32),
+            invalid_left=jnp.zeros((), jnp.int32),
         )
 
     def update(state: MonitorState, desired, y_meas):
@@ -195,6 +211,13 @@ def monitor(
                 raise ValueError(f"desired {name} must have shape ({n},), got {jnp.shape(value)}")
         if jnp.shape(y_meas) != (n, 2):
             raise ValueError(f"y_meas must have shape ({n}, 2), got {jnp.shape(y_meas)}")
+        for name, value in (("q_d", q_d), ("qd_d", qd_d), ("qdd_d", qdd_d)):
+            if _checks.is_concrete(value) and not bool(jnp.all(jnp.isfinite(value))):
+                raise ValueError(
+                    f"desired {name} contains NaN/inf at tick {int(state.tick)}: the monitor "
+                    "cannot know what the controller did with it. Fix the desired path "
+                    "(inside jit such a sample sets desired_invalid for the next window)"
+                )
         if _checks.is_concrete(y_meas) and not bool(jnp.all(jnp.isfinite(y_meas))):
             raise ValueError(
                 "y_meas contains NaN/inf; outside jit the monitor refuses it (inside jit a "
@@ -227,10 +250,20 @@ def monitor(
         else:
             upper, lower = extremes[0] + hi, extremes[1] + lo
 
+        # A non-finite desired sample (possible inside jit only) flags this tick
+        # and the next ``window`` ticks, whose windows hold it: no bounds, no alarm.
+        desired_ok = jnp.all(
+            jnp.stack([jnp.all(jnp.isfinite(jnp.asarray(d))) for d in (q_d, qd_d, qdd_d)])
+        )
+        invalid_left = jnp.where(desired_ok, state.invalid_left, window + 1)
+        desired_invalid = invalid_left > 0
+        upper = jnp.where(desired_invalid, jnp.nan, upper)
+        lower = jnp.where(desired_invalid, jnp.nan, lower)
+
         # Detection with persistence; NaN is outside.
         nan_reading = jnp.isnan(y)
         inside = (y >= lower - tol) & (y <= upper + tol)
-        outside = ~inside
+        outside = ~inside & ~desired_invalid
         run_length = jnp.where(outside, state.run_length + 1, 0)
         alarm = run_length >= persistence
         first_alarm = jnp.where(
@@ -242,6 +275,7 @@ def monitor(
         u = feedforward(
             jnp.asarray(q_d, dtype), jnp.asarray(qd_d, dtype), jnp.asarray(qdd_d, dtype), kp, kd
         )
+        u = jnp.where(desired_ok, u, state.u_buffer[-1])  # hold: the nominal stays finite
         qdd_nom = servo_command(x_nom[:, 0], x_nom[:, 1], u, kp, kd)
         nxt = jnp.stack(closed_loop_step(x_nom[:, 0], x_nom[:, 1], u, 0.0, kp, kd, dt), -1)
         new_state = MonitorState(
@@ -259,6 +293,7 @@ def monitor(
             y_first=y_first if measured_start else state.y_first,
             run_length=run_length.astype(jnp.int32),
             first_alarm=first_alarm,
+            invalid_left=jnp.maximum(invalid_left - 1, 0).astype(jnp.int32),
         )
         output = MonitorOutput(
             lower=lower,
@@ -269,6 +304,7 @@ def monitor(
             nan_reading=nan_reading,
             first_alarm=first_alarm,
             tick=k,
+            desired_invalid=desired_invalid,
         )
         return new_state, output
 

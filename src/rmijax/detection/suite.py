@@ -18,6 +18,7 @@ def default_fault_suite(n_joints: int, onset: float = 3.0) -> list[Fault]:
     faults = []
     for joint in range(n_joints):
         for kind in FAULT_KINDS:
-            value = {"bias": BIAS_VALUE, "drift": DRIFT_VALUE}.get(kind, 0.0)
-            faults.append(Fault(kind, joint, onset, value=value, sensor=0))
+            offsets = {"bias": BIAS_VALUE, "drift": DRIFT_VALUE}
+            extra = dict(value=offsets[kind], sensor=0) if kind in offsets else {}
+            faults.append(Fault(kind, joint, onset, **extra))
     return faults

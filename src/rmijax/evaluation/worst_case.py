@@ -45,6 +45,7 @@ from rmijax.methods.base import check_types
 from rmijax.methods.linearized import differentiable_model, window_output
 from rmijax.plant import simulate
 from rmijax.robots.box import UncertainRobot
+from rmijax.robots.check import check_model
 from rmijax.trajectory import Trajectory
 
 __all__ = [
@@ -160,6 +161,7 @@ def _search(traj, params, starts, steps, joints, sensors, signs, *, window, iter
 
 def _validate(traj, params):
     check_types(traj, params)
+    check_model(params, traj)
     if params.n_joints != traj.n_joints:
         raise ValueError(
             f"traj has {traj.n_joints} joints but params describes a "
@@ -190,6 +192,7 @@ def _step_of(name, t, traj):
 def _starts(params, starts, random_starts, seed):
     """Rows of ``starts``, the corners (``p <= 6``), the nominal and uniform draws: (S, p)."""
     p, dtype = params.n_params, params.dtype
+    seed = _checks.seed(seed)
     rows = []
     if starts is not None:
         given = jnp.asarray(starts, dtype)
@@ -349,7 +352,7 @@ def worst_case_table(
         TypeError, ValueError: as :func:`worst_case`; ``times`` empty or not 1-D.
     """
     traj, params = _validate(traj, params)
-    times = np.asarray(times, dtype=np.float64)
+    times = np.asarray(_checks.numbers("times", times, None), dtype=np.float64)
     if times.ndim != 1 or times.size == 0:
         raise ValueError(f"times must be a non-empty 1-D sequence of times in s, got {times!r}")
     steps = np.array([_step_of(f"times[{i}]", t, traj) for i, t in enumerate(times)])

@@ -10,6 +10,7 @@ import dataclasses
 
 import jax
 
+from rmijax import _checks
 from rmijax.robots.box import UncertainRobot
 from rmijax.trajectory import Trajectory
 
@@ -41,8 +42,7 @@ class Bounds:
         return self.upper - self.lower
 
 
-class ProblemTooLargeError(MemoryError):
-    """The working set of even one end step exceeds the memory budget."""
+ProblemTooLargeError = _checks.ProblemTooLargeError
 
 
 class DivergedError(ArithmeticError):

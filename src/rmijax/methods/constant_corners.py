@@ -29,11 +29,13 @@ import math
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from rmijax import _checks
 from rmijax.methods.base import Bounds, DivergedError, check_types
 from rmijax.plant import _NEVER, DIVERGENCE_LIMIT, _fault_tables, _plant_start, _plant_step, _run
-from rmijax.robots.box import UncertainRobot
+from rmijax.robots.box import UncertainRobot, uncertain_indices
+from rmijax.robots.check import check_model
 from rmijax.trajectory import Trajectory
 
 __all__ = ["HORIZONS", "constant_corner_bounds", "corner_of_index"]
@@ -50,33 +52,50 @@ _MAX_CHUNK = 1024
 _WINDOW_LANES = 4096
 """(corner, end step) pairs advanced together in the ``window`` horizon."""
 
+PLANT_STEPS_PER_SECOND = 2e7
+"""Plant steps per second, weighted by ``n^2``, that the time estimate assumes: a fast
+machine (a 2-core CPU measured 2e6 to 6e6)."""
+
 _MAX_PARAMS = 30
 """Corners are indexed by int32: at most ``2^30`` of them."""
 
 
-def corner_of_index(index, lo, hi):
+def corner_of_index(index, lo, hi, indices=None):
     """Corner ``index`` of the box: ``hi[b]`` where bit ``b`` of ``index`` is set, else ``lo[b]``.
 
     Args:
         index: int32 scalar, ``0 <= index < 2^p``.
         lo, hi: (p,) the box.
+        indices: None, or a static tuple of the parameters the bits stand for
+            (bit ``j`` sets parameter ``indices[j]``; the others stay at ``lo``).
 
     Returns:
-        (p,) the corner, row ``index`` of :func:`rmijax.corner_tensor`.
+        (p,) the corner, row ``index`` of :func:`rmijax.corner_tensor` (with the same ``indices``).
     """
-    bits = (index >> jnp.arange(lo.shape[0], dtype=jnp.int32)) & 1
-    return jnp.where(bits == 1, hi, lo)
+    if indices is None:
+        bits = (index >> jnp.arange(lo.shape[0], dtype=jnp.int32)) & 1
+        return jnp.where(bits == 1, hi, lo)
+    chosen = np.asarray(indices, int)
+    bits = (index >> jnp.arange(chosen.size, dtype=jnp.int32)) & 1
+    return lo.at[chosen].set(jnp.where(bits == 1, hi[chosen], lo[chosen]))
 
 
-def _chunk_corners(params, first, size):
+def _n_corners(params, uncertain):
+    return params.n_corners if uncertain is None else 2 ** len(uncertain)
+
+
+def _chunk_corners(params, first, size, uncertain):
     """Corners ``first .. first + size - 1`` (clipped to the last one: duplicates are harmless)."""
-    index = jnp.minimum(first + jnp.arange(size, dtype=jnp.int32), params.n_corners - 1)
-    return jax.vmap(corner_of_index, in_axes=(0, None, None))(index, params.lo, params.hi)
+    last = _n_corners(params, uncertain) - 1
+    index = jnp.minimum(first + jnp.arange(size, dtype=jnp.int32), last)
+    return jax.vmap(corner_of_index, in_axes=(0, None, None, None))(
+        index, params.lo, params.hi, uncertain
+    )
 
 
-def _run_chunk(traj, params, tables, first, *, size):
+def _run_chunk(traj, params, tables, first, *, size, uncertain):
     """Min and max over one chunk of corners of whole runs: (T+1, n, 2) each."""
-    th = _chunk_corners(params, first, size)
+    th = _chunk_corners(params, first, size, uncertain)
     noise = jnp.zeros_like(traj.x_n)
     states, _, _ = jax.vmap(_run, in_axes=(None, None, 0, None, None, None))(
         traj, params, th, noise, tables, DIVERGENCE_LIMIT
@@ -115,9 +134,9 @@ def _window_final(x0, u_win, active, th, params, kp, kd, dt, tables):
     return jnp.where(diverged == _NEVER, x, jnp.nan)
 
 
-def _window_chunk(traj, params, tables, first, *, size, window, batch):
+def _window_chunk(traj, params, tables, first, *, size, window, batch, uncertain):
     """Min and max over one chunk of corners at every end step, windows from ``x_n(k0)``."""
-    th = _chunk_corners(params, first, size)
+    th = _chunk_corners(params, first, size, uncertain)
     u_pad = jnp.concatenate([jnp.zeros((window, traj.n_joints), traj.dtype), traj.u_d], axis=0)
 
     def end_step(t_f):
@@ -132,15 +151,19 @@ def _window_chunk(traj, params, tables, first, *, size, window, batch):
     return jax.lax.map(end_step, jnp.arange(traj.n_steps + 1), batch_size=batch)
 
 
-def _chunk_fn(horizon, size, window, batch):
+def _chunk_fn(horizon, size, window, batch, uncertain):
     if horizon == "run":
-        return functools.partial(_run_chunk, size=size)
-    return functools.partial(_window_chunk, size=size, window=window, batch=batch)
+        return functools.partial(_run_chunk, size=size, uncertain=uncertain)
+    return functools.partial(
+        _window_chunk, size=size, window=window, batch=batch, uncertain=uncertain
+    )
 
 
-@functools.partial(jax.jit, static_argnames=("horizon", "size", "n_chunks", "window", "batch"))
-def _envelope_all(traj, params, tables, *, horizon, size, n_chunks, window, batch):
-    chunk = _chunk_fn(horizon, size, window, batch)
+@functools.partial(
+    jax.jit, static_argnames=("horizon", "size", "n_chunks", "window", "batch", "uncertain")
+)
+def _envelope_all(traj, params, tables, *, horizon, size, n_chunks, window, batch, uncertain):
+    chunk = _chunk_fn(horizon, size, window, batch, uncertain)
 
     def body(carry, first):
         low, high = chunk(traj, params, tables, first)
@@ -152,23 +175,33 @@ def _envelope_all(traj, params, tables, *, horizon, size, n_chunks, window, batc
     return low, high
 
 
-@functools.partial(jax.jit, static_argnames=("horizon", "size", "window", "batch"))
-def _envelope_chunk(traj, params, tables, first, *, horizon, size, window, batch):
-    return _chunk_fn(horizon, size, window, batch)(traj, params, tables, first)
+@functools.partial(jax.jit, static_argnames=("horizon", "size", "window", "batch", "uncertain"))
+def _envelope_chunk(traj, params, tables, first, *, horizon, size, window, batch, uncertain):
+    return _chunk_fn(horizon, size, window, batch, uncertain)(traj, params, tables, first)
 
 
-def _envelope_with_progress(traj, params, tables, *, horizon, size, n_chunks, window, batch):
+def _envelope_with_progress(
+    traj, params, tables, *, horizon, size, n_chunks, window, batch, uncertain
+):
     from tqdm.auto import tqdm
 
     low = jnp.full_like(traj.x_n, jnp.inf)
     high = jnp.full_like(traj.x_n, -jnp.inf)
-    total = params.n_corners
+    total = _n_corners(params, uncertain)
     desc = f"constant corners ({horizon}) n={traj.n_joints}"
     with tqdm(total=total, desc=desc, unit="corner") as bar:
         for chunk in range(n_chunks):
             first = jnp.asarray(chunk * size, jnp.int32)
             chunk_low, chunk_high = _envelope_chunk(
-                traj, params, tables, first, horizon=horizon, size=size, window=window, batch=batch
+                traj,
+                params,
+                tables,
+                first,
+                horizon=horizon,
+                size=size,
+                window=window,
+                batch=batch,
+                uncertain=uncertain,
             )
             low, high = jnp.minimum(low, chunk_low), jnp.maximum(high, chunk_high)
             low.block_until_ready()
@@ -181,17 +214,18 @@ def _validate(traj, params, horizon, window, noise_lo, noise_hi, chunk_size):
     if horizon not in HORIZONS:
         raise ValueError(f"unknown horizon {horizon!r}; choose one of {HORIZONS}")
     window = _checks.positive_int("window", window, "steps")
-    if chunk_size is not None:
-        chunk_size = _checks.positive_int("chunk_size", chunk_size, "corners")
+    chunk_size = _checks.chunk_size(chunk_size, "corners")
     n = traj.n_joints
     if params.n_joints != n:
         raise ValueError(
             f"traj has {n} joints but params describes a {params.n_joints}-joint robot; "
             "give one path per joint of the robot"
         )
-    if params.n_params > _MAX_PARAMS:
+    uncertain = uncertain_indices(params)
+    count = params.n_params if uncertain is None else len(uncertain)
+    if count > _MAX_PARAMS:
         raise ValueError(
-            f"constant_corners runs the plant once per corner: 2^{params.n_params} corners "
+            f"constant_corners runs the plant once per corner: 2^{count} corners "
             f"are out of reach (at most 2^{_MAX_PARAMS}); make parameters certain "
             "(lo == hi) or use a method that scales (rmijax.bounds)"
         )
@@ -200,12 +234,13 @@ def _validate(traj, params, horizon, window, noise_lo, noise_hi, chunk_size):
         _checks.check_finite(f"traj.{name}", getattr(traj, name))
     _checks.check_stable(traj.kp, traj.kd, traj.dt)
     lo, hi = _checks.noise_interval(noise_lo, noise_hi, n, dtype)
+    check_model(params, traj)
     return dtype, window, chunk_size, lo, hi
 
 
-def _chunking(traj, params, horizon, chunk_size, itemsize):
+def _chunking(traj, params, horizon, chunk_size, itemsize, uncertain):
     """Corners per chunk, number of chunks and (window horizon) end steps per batch."""
-    n_corners, n_samples = params.n_corners, traj.n_steps + 1
+    n_corners, n_samples = _n_corners(params, uncertain), traj.n_steps + 1
     if chunk_size is None:
         if horizon == "run":  # states, readings and their NaN-masked copies per corner
             per_corner = 4 * n_samples * traj.n_joints * 2 * itemsize
@@ -280,12 +315,37 @@ def constant_corner_bounds(
     dtype, window, chunk_size, lo, hi = _validate(
         traj, params, horizon, window, noise_lo, noise_hi, chunk_size
     )
+    progress = _checks.boolean("progress", progress)
     traj, params = _checks.cast_tree(traj, dtype), _checks.cast_tree(params, dtype)
     tables = _fault_tables((), traj.n_joints, traj.n_steps, traj.dt, dtype)
-    size, n_chunks, batch = _chunking(traj, params, horizon, chunk_size, jnp.dtype(dtype).itemsize)
+    uncertain = uncertain_indices(params)  # certain parameters add no corners
+    itemsize = jnp.dtype(dtype).itemsize
+    size, n_chunks, batch = _chunking(traj, params, horizon, chunk_size, itemsize, uncertain)
+    n_corners = _n_corners(params, uncertain)
+    per_corner = traj.n_steps + 1
+    if horizon == "window":
+        per_corner *= min(window, traj.n_steps)
+    steps = n_corners * per_corner
+    _checks.check_time(
+        f"constant_corners over {n_corners} corners x {traj.n_steps + 1} steps"
+        + (f" x {min(window, traj.n_steps)}-step windows" if horizon == "window" else ""),
+        steps * traj.n_joints**2 / PLANT_STEPS_PER_SECOND,
+        progress=progress,
+        fixes="Make parameters certain (lo == hi: each halves the corners), shorten the run, "
+        "or use a method that scales (rmijax.bounds with method='linearized' or "
+        "'corner_search').",
+    )
+    window = min(window, traj.n_steps)  # a longer window gives the same windows
     if horizon == "run":  # no window: one compiled program whatever ``window`` is
         window, batch = 0, 0
-    options = dict(horizon=horizon, size=size, n_chunks=n_chunks, window=window, batch=batch)
+    options = dict(
+        horizon=horizon,
+        size=size,
+        n_chunks=n_chunks,
+        window=window,
+        batch=batch,
+        uncertain=uncertain,
+    )
     leaves = jax.tree_util.tree_leaves((traj, params))
     if progress and all(_checks.is_concrete(a) for a in leaves):
         low, high = _envelope_with_progress(traj, params, tables, **options)

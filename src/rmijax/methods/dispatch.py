@@ -15,6 +15,9 @@ plots and the comparison treat them alike. The definitions are in
   held constant (the physical robot has constant parameters).
 - ``linearized``: first-order parameter sensitivity of the windowed closed
   loop, plus a remainder margin; cost polynomial in the links.
+- ``certified``: a band proven to contain every constant-parameter run (a
+  Taylor model with a rigorous remainder); the certificate comes from
+  :func:`rmijax.certified.certified_bounds`.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ from __future__ import annotations
 import inspect
 
 from rmijax.methods.base import Bounds
+from rmijax.methods.certified import certified_bounds
 from rmijax.methods.constant_corners import constant_corner_bounds
 from rmijax.methods.corner_search import corner_search_bounds
 from rmijax.methods.empirical import empirical_thresholds
@@ -33,7 +37,15 @@ from rmijax.trajectory import Trajectory
 
 __all__ = ["DEFAULT_WINDOWS", "METHODS", "SCALABLE_METHODS", "bounds", "options_of"]
 
-METHODS = ("rmi", "empirical", "short_window", "corner_search", "constant_corners", "linearized")
+METHODS = (
+    "rmi",
+    "empirical",
+    "short_window",
+    "corner_search",
+    "constant_corners",
+    "linearized",
+    "certified",
+)
 """Names accepted by :func:`bounds`."""
 
 SCALABLE_METHODS = ("empirical", "corner_search", "linearized")
@@ -56,8 +68,9 @@ _FUNCTIONS = {
     "corner_search": corner_search_bounds,
     "constant_corners": constant_corner_bounds,
     "linearized": linearized_bounds,
+    "certified": certified_bounds,
 }
-_COMMON = {"mode", "window", "noise_lo", "noise_hi", "readings"}
+_COMMON = {"mode", "window", "noise_lo", "noise_hi", "readings", "remainder_scale"}
 
 
 def options_of(method: str) -> tuple[str, ...]:
@@ -105,7 +118,8 @@ def bounds(
             (:func:`rmijax.empirical_thresholds`: ``runs``, ``safety``,
             ``seed``), ``short_window`` (``start``), ``corner_search``
             (``max_rounds``), ``constant_corners`` (``horizon``),
-            ``linearized`` (``margin``), and the batching options
+            ``linearized`` (``margin``), ``certified`` (``splits``,
+            ``segments``, ``kernel_steps``), and the batching options
             ``chunk_size``, ``progress``.
 
     Returns:
@@ -135,6 +149,11 @@ def bounds(
             raise ValueError("method='empirical' has no window: its band is constant")
         _coupled_only(method, mode)
         return empirical_thresholds(traj, params, **noise, **options)
+    if method == "certified":
+        if window is not None:
+            raise ValueError("method='certified' has no window: it certifies the whole run")
+        _coupled_only(method, mode)
+        return certified_bounds(traj, params, **noise, **options)[0]
     window = DEFAULT_WINDOWS[method] if window is None else window
     if method == "rmi":
         return rmi(traj, params, mode=mode, window=window, **noise, **options)

@@ -8,9 +8,9 @@ around the nominal output ``y_n``.
 from __future__ import annotations
 
 import jax.numpy as jnp
-import numpy as np
 
-from rmijax.methods.base import Bounds
+from rmijax import _checks
+from rmijax.methods.base import Bounds, check_types
 from rmijax.plant import simulate
 from rmijax.robots.box import UncertainRobot, monte_carlo_parameters
 from rmijax.trajectory import Trajectory
@@ -37,10 +37,10 @@ def empirical_thresholds(
     Returns:
         :class:`~rmijax.methods.base.Bounds` of shape (T+1, n, 2).
     """
-    if int(runs) < 1:
-        raise ValueError(f"runs must be >= 1, got {runs!r}")
-    if not (np.isfinite(safety) and safety > 0):
-        raise ValueError(f"safety must be a positive factor, got {safety!r}")
+    check_types(traj, params)
+    runs = _checks.integer("runs", runs, minimum=1, unit="runs")
+    safety = _checks.real("safety", safety, positive=True)
+    seed = _checks.seed(seed)
     th = monte_carlo_parameters(params, runs, seed=seed, corners=False)
     _, readings = simulate(traj, params, th, noise_lo=noise_lo, noise_hi=noise_hi, seed=seed)
     nominal = jnp.asarray(traj.x_n)

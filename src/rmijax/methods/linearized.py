@@ -221,10 +221,9 @@ def estimate_memory(params: UncertainRobot, *, margin=True, dtype=None) -> int:
 
 
 def _batch(params, margin, dtype, n_end, chunk_size):
+    chunk_size = _checks.chunk_size(chunk_size, "end steps")
     if chunk_size is not None:
-        if isinstance(chunk_size, bool) or not isinstance(chunk_size, (int, np.integer)):
-            raise ValueError(f"chunk_size must be an integer >= 1 or None, got {chunk_size!r}")
-        return min(_checks.positive_int("chunk_size", chunk_size, "end steps"), n_end)
+        return min(chunk_size, n_end)
     per_end_step = estimate_memory(params, margin=margin, dtype=dtype)
     return int(max(1, min(engine.DEFAULT_MEMORY_BUDGET // per_end_step, _MAX_BATCH, n_end)))
 
@@ -296,11 +295,12 @@ def linearized_bounds(
     dtype, lo, hi = engine._validate(
         traj, params, mode, window, noise_lo, noise_hi, search="enumerate"
     )
-    margin = bool(margin)
+    margin = _checks.boolean("margin", margin)
+    progress = _checks.boolean("progress", progress)
     traj, params = engine._cast(traj, params, dtype)
     n_end = traj.n_steps + 1
     batch = _batch(params, margin, dtype, n_end, chunk_size)
-    window = int(window)
+    window = min(int(window), traj.n_steps)  # a longer window gives the same windows
     concrete = all(_checks.is_concrete(a) for a in jax.tree_util.tree_leaves((traj, params)))
     if progress and concrete:
         bounds = _with_progress(traj, params, lo, hi, window, batch, margin)

@@ -27,9 +27,10 @@ import numpy as np
 from rmijax import _checks
 from rmijax.control import closed_loop_step, computed_torque, servo_command
 from rmijax.methods.base import Bounds, DivergedError, ProblemTooLargeError, check_types
-from rmijax.methods.choosers import enumerate_corners, resolve
+from rmijax.methods.choosers import StructuredChooser, enumerate_corners, resolve
 from rmijax.methods.planar_search import FactoredSearch
-from rmijax.robots.box import UncertainRobot
+from rmijax.robots.box import UncertainRobot, corner_tensor, uncertain_indices
+from rmijax.robots.check import check_model
 from rmijax.trajectory import Trajectory
 
 __all__ = [
@@ -43,6 +44,7 @@ __all__ = [
     "costate_weights",
     "enumerate_corners",
     "estimate_memory",
+    "estimate_seconds",
     "rmi",
     "rmi_step",
     "window_constants",
@@ -87,6 +89,7 @@ def _validate(traj, params, mode, window, noise_lo, noise_hi, search="auto"):
         _checks.check_finite(f"traj.{name}", getattr(traj, name))
     _checks.check_stable(traj.kp, traj.kd, traj.dt)
     lo, hi = _checks.noise_interval(noise_lo, noise_hi, n, dtype)
+    check_model(params, traj)
     return dtype, lo, hi
 
 
@@ -130,7 +133,11 @@ def estimate_memory(
     errs high by about 2x; it grows linearly with the number of end steps per batch.
     """
     del window  # the scan keeps one step's intermediates alive at a time
-    n, k = params.n_joints, params.n_corners
+    if mode not in MODES:
+        raise ValueError(f"unknown mode {mode!r}; choose one of {MODES}")
+    if not callable(search) and search not in SEARCHES:
+        raise ValueError(f"unknown search {search!r}; choose one of {SEARCHES}")
+    n, k = params.n_joints, _enumerated_corners(params)
     itemsize = jnp.dtype(dtype or params.dtype).itemsize
     tracks = 4 * n
     found = resolve(params.model, search)
@@ -141,6 +148,40 @@ def estimate_memory(
     else:
         per_value = 3 * n * n + 4 * n + 8
     return _WINDOW_DATA_BYTES + tracks * k * itemsize * per_value
+
+
+def _enumerated_corners(params):
+    """Corners enumeration evaluates: ``2^u`` over the ``u`` uncertain parameters
+    (certain ones, ``lo == hi``, add none), ``2^p`` when the box is traced."""
+    uncertain = uncertain_indices(params)
+    return params.n_corners if uncertain is None else 2 ** len(uncertain)
+
+
+EVALUATIONS_PER_SECOND = 1e8
+"""Dynamics evaluations per second, weighted by ``n^2``, that the time estimate assumes:
+a fast machine (a 2-core CPU measured about 1e7), so a refusal means hopeless, not slow."""
+
+
+def estimate_seconds(params, n_steps, *, mode="coupled", window=100, search="auto"):
+    """Optimistic run time (s) of :func:`rmi` over ``n_steps`` steps, or None if not estimated.
+
+    Counted for the searches that evaluate corners: enumeration (``2^u`` corners
+    of the ``u`` uncertain parameters) and the structured choosers
+    (``2^(p-a) (1 + a)`` values); ``(T+1) min(N, T) 4n`` track steps each, an
+    evaluation costing ``n^2`` at :data:`EVALUATIONS_PER_SECOND`. The planar
+    arm's factored search and the corner search scale polynomially: None.
+    """
+    del mode
+    found = resolve(params.model, search)
+    if found is enumerate_corners:
+        per_step = _enumerated_corners(params)
+    elif isinstance(found, StructuredChooser):
+        per_step = found.n_evaluated * (1 + len(found.affine))
+    else:
+        return None
+    n = params.n_joints
+    evaluations = (n_steps + 1) * min(int(window), n_steps) * 4 * n * per_step
+    return evaluations * n * n / EVALUATIONS_PER_SECOND
 
 
 _WINDOW_DATA_BYTES = 64 * 2**10
@@ -160,24 +201,34 @@ def check_memory(
     _batch_size(params, mode, window, dtype or params.dtype, budget, 1, None, search=search)
 
 
+def _size(nbytes):
+    """Bytes for a message: ``1.50 GiB``, ``12.0 MiB``, ``64.0 KiB`` or ``100 bytes``."""
+    for unit, scale in (("GiB", 2**30), ("MiB", 2**20), ("KiB", 2**10)):
+        if nbytes >= 0.1 * scale:
+            return f"{nbytes / scale:.{2 if unit == 'GiB' else 1}f} {unit}"
+    return f"{int(nbytes)} bytes"
+
+
 def _batch_size(params, mode, window, dtype, budget, n_end_steps, chunk_size, *, search="auto"):
+    budget = _checks.memory_budget(budget)
+    chunk_size = _checks.chunk_size(chunk_size, "end steps")
     per_end_step = estimate_memory(params, mode=mode, window=window, dtype=dtype, search=search)
     if per_end_step > budget:
         raise ProblemTooLargeError(
-            f"one end step of this problem needs about {per_end_step / 2**30:.2f} GiB "
-            f"({params.n_joints} joints, K = {params.n_corners} corners, mode={mode!r}) "
-            f"but memory_budget is {budget / 2**30:.2f} GiB even at chunk size 1. Raise "
-            "memory_budget (bytes) if the machine has the memory, or make parameters "
-            "certain (lo == hi) to shrink the box."
+            f"one end step of this problem needs about {_size(per_end_step)} "
+            f"({params.n_joints} joints, {_enumerated_corners(params)} corners of the "
+            f"uncertain parameters, mode={mode!r}) but memory_budget is "
+            f"{_size(budget)} even at chunk size 1. Raise memory_budget (bytes) if "
+            "the machine has the memory, make parameters certain (lo == hi: each halves "
+            "the corners) or use a method that scales (rmijax.bounds, e.g. "
+            "method='corner_search' or 'linearized')."
         )
     if chunk_size is not None:
-        if int(chunk_size) < 1:
-            raise ValueError(f"chunk_size must be >= 1, got {chunk_size!r}")
-        if int(chunk_size) * per_end_step > budget:
+        if chunk_size * per_end_step > budget:
             raise ProblemTooLargeError(
                 f"chunk_size={chunk_size} needs about "
-                f"{int(chunk_size) * per_end_step / 2**30:.2f} GiB, over memory_budget "
-                f"{budget / 2**30:.2f} GiB; use chunk_size <= {budget // per_end_step} "
+                f"{_size(chunk_size * per_end_step)}, over memory_budget "
+                f"{_size(budget)}; use chunk_size <= {budget // per_end_step} "
                 "or leave it None to size it from the budget"
             )
         return min(int(chunk_size), n_end_steps)
@@ -205,12 +256,15 @@ def costate_weights(kp, kd, dt, window):
     return jnp.flip(vel_weights, 0)  # step s weighs with (A')^(N-1-s) c
 
 
-def window_constants(params, kp, kd, dt, window, search="auto"):
+def window_constants(params, kp, kd, dt, window, search="auto", uncertain=None):
     """The arrays every window shares: costate weights, the box and, if enumerated, corners.
 
     The ``(K, p)`` corner tensor is built only when ``search`` enumerates it: a
     chooser or the factored search never needs it (at 16 links it would have
-    ``2^32`` rows).
+    ``2^32`` rows). ``uncertain`` (a static tuple, :func:`uncertain_indices`)
+    limits it to the corners of those parameters: the same chosen corner, tie
+    rule included, since corners that differ only in certain parameters are
+    the same vector and the lowest index among them has those bits clear.
     """
     consts = dict(
         weights=costate_weights(kp, kd, dt, window),
@@ -221,11 +275,11 @@ def window_constants(params, kp, kd, dt, window, search="auto"):
         kd=kd,
     )
     if getattr(resolve(params.model, search), "needs_corners", False):
-        consts["corners"] = params.corners
+        consts["corners"] = corner_tensor(params.lo, params.hi, uncertain)
     return consts
 
 
-def _window_data(traj, params, window, search="auto", starts=None):
+def _window_data(traj, params, window, search="auto", starts=None, uncertain=None):
     """Arrays one window needs, padded so that any end step slices a fixed length.
 
     ``traj`` and ``params`` arrive cast to one dtype (:func:`_cast`). ``starts``
@@ -242,13 +296,13 @@ def _window_data(traj, params, window, search="auto", starts=None):
         x_start=traj.x_n if starts is None else starts,
         x_pad=pad(traj.x_n),
         qdd_pad=pad(traj.qdd_n),
-        **window_constants(params, traj.kp, traj.kd, traj.dt, window, search),
+        **window_constants(params, traj.kp, traj.kd, traj.dt, window, search, uncertain),
     )
 
 
-def _end_step_fn(traj, params, mode, window, search, starts=None):
+def _end_step_fn(traj, params, mode, window, search, starts=None, uncertain=None):
     """The window data and ``t_f -> extremes (2, n, 2)`` of one end step."""
-    data = _window_data(traj, params, window, search, starts)
+    data = _window_data(traj, params, window, search, starts, uncertain)
     fn = functools.partial(
         _window_extremes,
         data=data,
@@ -407,23 +461,35 @@ def _assemble(extremes, nominal, noise_lo, noise_hi, dt):
     return Bounds(lower=lower, upper=upper, nominal=nominal, crossed=upper < lower, dt=dt)
 
 
-@functools.partial(jax.jit, static_argnames=("mode", "window", "batch", "search"))
-def _rmi_all(traj, params, noise_lo, noise_hi, starts=None, *, mode, window, batch, search="auto"):
-    data, fn = _end_step_fn(traj, params, mode, window, search, starts)
+@functools.partial(jax.jit, static_argnames=("mode", "window", "batch", "search", "uncertain"))
+def _rmi_all(
+    traj,
+    params,
+    noise_lo,
+    noise_hi,
+    starts=None,
+    *,
+    mode,
+    window,
+    batch,
+    search="auto",
+    uncertain=None,
+):
+    data, fn = _end_step_fn(traj, params, mode, window, search, starts, uncertain)
     end_steps = jnp.arange(traj.n_steps + 1)
     extremes = jax.lax.map(fn, end_steps, batch_size=batch)  # (T+1, 2, n, 2)
     return _assemble(extremes, data["x_n"], noise_lo, noise_hi, traj.dt)
 
 
-@functools.partial(jax.jit, static_argnames=("mode", "window", "search"))
-def _rmi_chunk(traj, params, end_steps, starts=None, *, mode, window, search):
-    _, fn = _end_step_fn(traj, params, mode, window, search, starts)
+@functools.partial(jax.jit, static_argnames=("mode", "window", "search", "uncertain"))
+def _rmi_chunk(traj, params, end_steps, starts=None, *, mode, window, search, uncertain=None):
+    _, fn = _end_step_fn(traj, params, mode, window, search, starts, uncertain)
     return jax.vmap(fn)(end_steps)
 
 
-@functools.partial(jax.jit, static_argnames=("mode", "window", "search"))
-def _rmi_one(traj, params, t_f, noise_lo, noise_hi, *, mode, window, search):
-    data, fn = _end_step_fn(traj, params, mode, window, search)
+@functools.partial(jax.jit, static_argnames=("mode", "window", "search", "uncertain"))
+def _rmi_one(traj, params, t_f, noise_lo, noise_hi, *, mode, window, search, uncertain=None):
+    data, fn = _end_step_fn(traj, params, mode, window, search, uncertain=uncertain)
     extremes = fn(t_f)
     return _assemble(extremes, data["x_n"][t_f], noise_lo, noise_hi, traj.dt)
 
@@ -559,15 +625,29 @@ def _rmi_from_starts(
     Returns:
         :class:`Bounds` (T+1, n, 2), not yet checked (:func:`_check_result`).
     """
+    progress = _checks.boolean("progress", progress)
     n_end = traj.n_steps + 1
+    window = min(int(window), traj.n_steps)  # a longer window gives the same windows
     batch = _batch_size(
         params, mode, window, traj.dtype, memory_budget, n_end, chunk_size, search=search
     )
+    seconds = estimate_seconds(params, traj.n_steps, mode=mode, window=window, search=search)
+    if seconds is not None:
+        _checks.check_time(
+            f"RMI over {_enumerated_corners(params)} corners x {4 * traj.n_joints} tracks x "
+            f"{n_end} end steps x {window}-step windows",
+            seconds,
+            progress=progress,
+            fixes="Make parameters certain (lo == hi: each halves the corners), shorten the "
+            "run or the window, or use a method that scales (rmijax.bounds with "
+            "method='corner_search' or 'linearized').",
+        )
     leaves = jax.tree_util.tree_leaves((traj, params, starts))
     concrete = all(_checks.is_concrete(a) for a in leaves)
+    uncertain = uncertain_indices(params)
     if progress and concrete:
         return _rmi_with_progress(
-            traj, params, offset_lo, offset_hi, mode, window, batch, search, starts
+            traj, params, offset_lo, offset_hi, mode, window, batch, search, starts, uncertain
         )
     return _rmi_all(
         traj,
@@ -579,10 +659,11 @@ def _rmi_from_starts(
         window=int(window),
         batch=batch,
         search=search,
+        uncertain=uncertain,
     )
 
 
-def _rmi_with_progress(traj, params, lo, hi, mode, window, batch, search, starts=None):
+def _rmi_with_progress(traj, params, lo, hi, mode, window, batch, search, starts, uncertain):
     from tqdm.auto import tqdm
 
     n_end = traj.n_steps + 1
@@ -600,12 +681,44 @@ def _rmi_with_progress(traj, params, lo, hi, mode, window, batch, search, starts
                 mode=mode,
                 window=int(window),
                 search=search,
+                uncertain=uncertain,
             )
             extremes.block_until_ready()
             pieces.append(extremes)
             bar.update(min(batch, n_end - chunk * batch))
     extremes = jnp.concatenate(pieces, axis=0)[:n_end]
     return _assemble(extremes, traj.x_n, lo, hi, traj.dt)
+
+
+def _end_step(t_f, n_steps):
+    """``t_f`` as an int32 scalar in ``[0, T]``: integer types only, never wrapped.
+
+    The dtype is known even under ``jit``, so a float or bool ``t_f`` is
+    refused at trace time (truncating 2.5 to 2 would silently answer for
+    another step). A traced integer is clipped into ``[0, T]`` in its own
+    dtype before the cast to int32, so an int64 beyond the int32 range lands
+    on ``T``, not on a wrapped-around step.
+    """
+    dtype = getattr(t_f, "dtype", None)
+    if isinstance(t_f, (bool, np.bool_)) or (dtype is not None and dtype == np.bool_):
+        raise TypeError(f"t_f must be an integer end step, got the bool {t_f!r}")
+    if dtype is None and not isinstance(t_f, int):
+        raise TypeError(
+            f"t_f must be an integer end step (0 <= t_f <= T), got {t_f!r} of type "
+            f"{type(t_f).__name__}"
+        )
+    if dtype is not None and not jnp.issubdtype(dtype, jnp.integer):
+        raise TypeError(
+            f"t_f must be an integer end step, got dtype {dtype}; a float step would be "
+            "truncated to another step. Pass an int (e.g. jnp.int32(k)) or round it yourself"
+        )
+    if np.ndim(t_f) != 0:
+        raise ValueError(f"t_f must be a scalar end step, got shape {np.shape(t_f)}")
+    if _checks.is_concrete(t_f):
+        if not 0 <= int(t_f) <= n_steps:
+            raise ValueError(f"t_f={int(t_f)} is outside the trajectory's end steps [0, {n_steps}]")
+        return jnp.asarray(int(t_f), jnp.int32)
+    return jnp.clip(t_f, 0, n_steps).astype(jnp.int32)
 
 
 def rmi_step(
@@ -623,8 +736,9 @@ def rmi_step(
 
     ``t_f`` may be a Python int or a traced integer: under the user's
     ``jax.jit`` the same compiled step serves every ``t_f`` without retracing.
-    A traced ``t_f`` outside ``[0, T]`` is clipped into it. The other
-    arguments are those of :func:`rmi`.
+    A traced ``t_f`` outside ``[0, T]`` is clipped into it (in its own dtype,
+    so a large int64 never wraps to another step); a float or bool ``t_f``
+    is refused, traced or not. The other arguments are those of :func:`rmi`.
 
     Returns:
         :class:`Bounds` with ``lower``, ``upper``, ``nominal``, ``crossed`` of
@@ -632,15 +746,19 @@ def rmi_step(
     """
     dtype, lo, hi = _validate(traj, params, mode, window, noise_lo, noise_hi, search)
     traj, params = _cast(traj, params, dtype)
-    if _checks.is_concrete(t_f):
-        if np.ndim(t_f) != 0 or not float(t_f).is_integer():
-            raise ValueError(f"t_f must be an integer end step, got {t_f!r}")
-        if not 0 <= int(t_f) <= traj.n_steps:
-            raise ValueError(
-                f"t_f={int(t_f)} is outside the trajectory's end steps [0, {traj.n_steps}]"
-            )
+    t_f = _end_step(t_f, traj.n_steps)
+    window = min(int(window), traj.n_steps)  # a longer window gives the same window
     check_memory(params, mode=mode, window=window, dtype=dtype, search=search)
-    t_f = jnp.clip(jnp.asarray(t_f, jnp.int32), 0, traj.n_steps)
-    bounds = _rmi_one(traj, params, t_f, lo, hi, mode=mode, window=int(window), search=search)
+    bounds = _rmi_one(
+        traj,
+        params,
+        t_f,
+        lo,
+        hi,
+        mode=mode,
+        window=int(window),
+        search=search,
+        uncertain=uncertain_indices(params),
+    )
     _check_result(bounds)
     return bounds

@@ -16,23 +16,53 @@ import numpy as np
 from rmijax import _checks
 from rmijax.robots.model import RobotModel
 
-__all__ = ["UncertainRobot", "corner_tensor", "monte_carlo_parameters", "uncertain_robot"]
+__all__ = [
+    "UncertainRobot",
+    "corner_tensor",
+    "monte_carlo_parameters",
+    "uncertain_indices",
+    "uncertain_robot",
+]
 
 
-def corner_tensor(lo, hi):
-    """All ``2^p`` corners of the box ``[lo, hi]``.
+def corner_tensor(lo, hi, indices=None):
+    """All ``2^p`` corners of the box ``[lo, hi]``, or those of the parameters ``indices``.
 
     Args:
         lo, hi: bounds (p,).
+        indices: None (every parameter), or a static ascending tuple of the
+            parameters to enumerate (:func:`uncertain_indices`); the others
+            stay at ``lo`` (certain parameters have ``lo == hi``).
 
     Returns:
-        corners (K, p), ``K = 2^p``; row ``c`` takes ``hi[b]`` where bit ``b``
-        of ``c`` is set, ``lo[b]`` otherwise.
+        corners (K, p), ``K = 2^p`` (``2^len(indices)``); row ``c`` takes ``hi[b]``
+        where bit ``b`` of ``c`` is set, ``lo[b]`` otherwise (with ``indices``,
+        bit ``j`` of ``c`` sets parameter ``indices[j]``). Dropping certain
+        parameters keeps the order of the remaining corners, so the lowest
+        index of a tie is the same corner either way.
     """
     p = lo.shape[-1]
-    index = jnp.arange(2**p, dtype=jnp.int32)
-    bits = (index[:, None] >> jnp.arange(p, dtype=jnp.int32)[None, :]) & 1
-    return jnp.where(bits == 1, hi[None, :], lo[None, :])
+    chosen = np.arange(p) if indices is None else np.asarray(indices, int)
+    index = jnp.arange(2**chosen.size, dtype=jnp.int32)
+    bits = (index[:, None] >> jnp.arange(chosen.size, dtype=jnp.int32)[None, :]) & 1
+    if indices is None:
+        return jnp.where(bits == 1, hi[None, :], lo[None, :])
+    rows = jnp.broadcast_to(lo, (index.shape[0], p))
+    return rows.at[:, chosen].set(jnp.where(bits == 1, hi[chosen][None, :], lo[chosen][None, :]))
+
+
+def uncertain_indices(params) -> tuple[int, ...] | None:
+    """The parameters with ``lo < hi``, as a static tuple; None when the box is traced.
+
+    Certain parameters (``lo == hi``) add no corners: every corner that differs
+    from another only in them is the same parameter vector. The engine and
+    ``constant_corners`` enumerate the uncertain ones only when the box is
+    concrete (under a user's ``jit`` its values are unknown, so every corner
+    is enumerated).
+    """
+    if not (_checks.is_concrete(params.lo) and _checks.is_concrete(params.hi)):
+        return None
+    return tuple(int(b) for b in np.flatnonzero(np.asarray(params.hi) > np.asarray(params.lo)))
 
 
 @jax.tree_util.register_dataclass
@@ -100,6 +130,11 @@ def uncertain_robot(model: RobotModel, nominal, lo, hi, *, dtype=None) -> Uncert
         ValueError: on shape mismatches, NaN/inf, ``lo > hi`` or a nominal
             outside its box; the message names the argument and the fix.
     """
+    if not isinstance(model, RobotModel):
+        raise TypeError(
+            f"model must be a rmijax.RobotModel (its mass_matrix and bias functions), got "
+            f"{type(model).__name__}"
+        )
     names = model.param_names or tuple(f"th[{b}]" for b in range(model.n_params))
     arrays = {}
     for label, value in (("nominal", nominal), ("lo", lo), ("hi", hi)):
@@ -134,7 +169,9 @@ def monte_carlo_parameters(
     Returns:
         (K + draws, p) or (draws, p) array.
     """
-    rng = np.random.default_rng(seed)
+    draws = _checks.integer("draws", draws, minimum=0)
+    rng = np.random.default_rng(_checks.seed(seed))
+    corners = _checks.boolean("corners", corners)
     lo, hi = np.asarray(params.lo, np.float64), np.asarray(params.hi, np.float64)
     uniform = lo + (hi - lo) * rng.uniform(size=(int(draws), lo.size))
     if not corners:

@@ -39,10 +39,19 @@ from rmijax.robots.model import RobotModel
 from rmijax.robots.spatial import Chain, Payload, spatial_dynamics
 from rmijax.robots.structure import LinearDynamics
 
-__all__ = ["SHIPPED", "description_path", "load_chain", "load_robot"]
+__all__ = ["REAL_ARM_BOX", "SHIPPED", "description_path", "load_chain", "load_robot"]
 
 SHIPPED = ("panda", "iiwa14", "ur5e")
 """Names of the descriptions shipped in ``rmijax/robots/descriptions/`` (MJCF, mesh-free)."""
+
+REAL_ARM_BOX = dict(
+    mass=0.1,
+    payload=(0.0, 1.0),
+    friction=dict(viscous=(0.0, 0.5), coulomb=(0.0, 0.5)),
+)
+"""A typical box for a real arm: link masses +-10 %, a 0-1 kg payload at the last link,
+viscous 0-0.5 N m s/rad and Coulomb 0-0.5 N m friction per joint (nominal at midpoints).
+The real-arm job and :func:`rmijax.io.resolve_robot` use it for a named arm."""
 
 
 @dataclasses.dataclass

@@ -16,6 +16,8 @@ from collections.abc import Callable
 import jax
 import jax.numpy as jnp
 
+from rmijax import _checks
+
 __all__ = ["GRAVITY", "RobotModel"]
 
 GRAVITY = 9.81
@@ -45,6 +47,10 @@ class RobotModel:
         structure: an optional declaration of how the parameters enter the
             dynamics (:mod:`rmijax.robots.structure`); exact RMI takes a
             faster search from it. None: every corner is evaluated.
+        trusted: skip :func:`rmijax.check_model` (the sanity check of ``M``,
+            ``h`` and ``forward_dynamics`` run before every band computation).
+            The library's own models set it (the test suite holds them to the
+            SPEC's oracles); set it only for a model you have tested yourself.
     """
 
     n_joints: int
@@ -55,12 +61,30 @@ class RobotModel:
     name: str = "robot"
     param_names: tuple[str, ...] = ()
     structure: object = None
+    trusted: bool = False
 
     def __post_init__(self):
-        if int(self.n_joints) < 1:
-            raise ValueError(f"n_joints must be >= 1, got {self.n_joints}")
-        if int(self.n_params) < 0:
-            raise ValueError(f"n_params must be >= 0, got {self.n_params}")
+        _checks.integer("n_joints", self.n_joints, minimum=1, unit="joints")
+        _checks.integer("n_params", self.n_params, minimum=0, unit="parameters")
+        _checks.boolean("trusted", self.trusted)
+        for name in ("mass_matrix", "bias"):
+            if not callable(getattr(self, name)):
+                raise TypeError(
+                    f"{name} must be a function (a pure JAX function of q"
+                    f"{', qd' if name == 'bias' else ''} and th), got {getattr(self, name)!r}"
+                )
+        if self.forward_dynamics is not None and not callable(self.forward_dynamics):
+            raise TypeError(
+                "forward_dynamics must be None or a function (q, qd, tau, th) -> qdd, "
+                f"got {self.forward_dynamics!r}"
+            )
+        if isinstance(self.param_names, str) or not all(
+            isinstance(label, str) for label in self.param_names
+        ):
+            raise TypeError(
+                "param_names must be a tuple of strings, one per parameter, got "
+                f"{self.param_names!r}"
+            )
         if self.param_names and len(self.param_names) != self.n_params:
             raise ValueError(
                 f"param_names has {len(self.param_names)} entries but n_params is "

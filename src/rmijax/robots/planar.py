@@ -194,9 +194,7 @@ def planar_arm_model(n_links: int) -> RobotModel:
     along ``-y``; ``q_1`` is measured from the horizontal ``x`` axis and
     ``q_i`` (i > 1) relative to link ``i-1``.
     """
-    n = int(n_links)
-    if n < 1:
-        raise ValueError(f"n_links must be >= 1, got {n_links}")
+    n = _checks.integer("n_links", n_links, minimum=1, unit="links")
     names = tuple(f"m{k + 1}" for k in range(n)) + tuple(f"l{k + 1}" for k in range(n))
     return RobotModel(
         n_joints=n,
@@ -207,6 +205,7 @@ def planar_arm_model(n_links: int) -> RobotModel:
         name=f"planar_arm_{n}",
         param_names=names,
         structure=PlanarPointMass(),
+        trusted=True,
     )
 
 
@@ -259,9 +258,7 @@ def preset_arm(n: int, *, dtype=None) -> UncertainRobot:
     """The ``n``-link scaling preset: link 1 as the paper's two-joint arm's link 1
     (``m = 12 [11, 13]`` kg, ``l = 1.5 [1.49, 1.51]`` m), every other link as its
     link 2 (``m = 10 [9, 11]`` kg, ``l = 1 [0.99, 1.01]`` m)."""
-    n = int(n)
-    if n < 1:
-        raise ValueError(f"n must be >= 1 link, got {n}")
+    n = _checks.integer("n", n, minimum=1, unit="links")
     masses = [12.0] + [10.0] * (n - 1)
     masses_lo = [11.0] + [9.0] * (n - 1)
     masses_hi = [13.0] + [11.0] * (n - 1)

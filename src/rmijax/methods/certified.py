@@ -1,0 +1,724 @@
+"""Certified bounds: bands proven to contain every constant-parameter run of the closed loop.
+
+What is certified (see ``docs/methods.md``, section "certified"): for the
+discretised closed loop of SPEC section 3 (explicit Euler, the nominal
+computed-torque controller fed by the readings, from ``x(0) = x_d(0)`` over
+the whole horizon) in exact real arithmetic with the given float64 data
+(``dt``, gains, ``u_d``, the box, gravity 9.81), and every *constant*
+``th`` in the box, ``y_k(th)`` lies in ``[lower_k, upper_k]``; with sensor
+noise in ``[V_lo, V_hi]`` (any sequence, it need not be constant) the band
+holds the readings ``y_k + eta_k``, the controller acting on noisy readings
+included.
+
+Method: a second-order Taylor model in ``d = th - th_c`` along the centre
+run ``x_c`` (``th_c`` the nominal, or a piece's centre when the box is
+split),
+
+    x_k(th) = x_c(k) + S_k d + 1/2 Q_k[d, d] + R_k,
+
+whose coefficients are propagated step by step with interval 2-jets of the
+perturbation ``gv`` (:mod:`rmijax._intervals`) evaluated at the centre. The
+remainder obeys exactly ``R_{k+1} = A R_k + xi_k`` with ``A`` the linear
+closed loop of every joint and ``xi_k`` bounded componentwise, ``|xi_k| <=
+w_k``, by
+
+- the Lagrange remainder of ``gv``'s second-order expansion in
+  ``(d, R, eta)``: the Hessian of ``gv`` enclosed over the whole tube of step
+  ``k`` (polynomial part over the box plus ``|R_k| <= r_k``) by interval
+  2-jets, minus the centre's Hessian that ``Q`` already carries, plus the
+  first-order ``R`` and noise terms;
+- the rounding of the stored coefficients (each is the midpoint of its
+  interval enclosure; the half-width is added).
+
+Then ``|R_k| <= r_k = sum_j |A^(k-1-j)| w_j`` (the last :data:`KERNEL_STEPS`
+powers exactly, older ones through ``||A^M||`` and a geometric tail): an
+induction in which every step's ``w_k`` is computed over the tube that
+``r_k`` defines. The band is the exact range of the quadratic over the box
+(one-dimensional quadratics exactly, cross terms by interval products), plus
+``r_k`` and the noise bounds, rounded outward.
+
+Supported models: the planar point-mass arm (:func:`rmijax.planar_arm`,
+:func:`rmijax.preset_arm`, ...), whose ``M`` and ``h`` the interval jets
+evaluate in their closed form. Other models are refused with a
+``NotImplementedError``; a spatial chain needs the same evaluation of its
+``M(q, th)`` and ``h(q, qd, th)`` on jets (sin, cos, +, *, / of its
+recursive Newton-Euler terms).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from rmijax import _checks
+from rmijax._intervals import Interval, Tape, run_tape, up
+from rmijax._linalg import ldl_factor, ldl_solve
+from rmijax.methods.base import Bounds, DivergedError, check_types
+from rmijax.robots.box import UncertainRobot
+from rmijax.robots.model import GRAVITY
+from rmijax.robots.planar import tail_sums
+from rmijax.robots.structure import PlanarPointMass
+from rmijax.trajectory import Trajectory
+
+__all__ = [
+    "KERNEL_STEPS",
+    "Certificate",
+    "certified_bounds",
+    "planar_perturbation_jets",
+]
+
+KERNEL_STEPS = 400
+"""Powers ``|A^m|``, ``m < KERNEL_STEPS``, applied exactly to the remainder's past inputs."""
+
+_EPS = 2.0**-52
+_TINY = 2.0**-1000
+
+
+# --------------------------------------------------------------------------
+# The perturbation of the planar arm on jets (any backend)
+# --------------------------------------------------------------------------
+
+
+def _angle_sums(q):
+    """``phi_a = q_1 + .. + q_a`` and ``phi_a - phi_b = q_(b+1) + .. + q_a`` (b < a), as sums."""
+    n = len(q)
+    phi = [q[0]]
+    for a in range(1, n):
+        phi.append(phi[-1] + q[a])
+    diff = [[None] * n for _ in range(n)]
+    for a in range(n):
+        total = None
+        for b in range(a - 1, -1, -1):
+            total = q[a] if total is None else total + q[b + 1]
+            diff[a][b] = total
+    return phi, diff
+
+
+def _running(values):
+    out = [values[0]]
+    for value in values[1:]:
+        out.append(out[-1] + value)
+    return out
+
+
+def _trig_state(q, qd, accel):
+    """cos(phi_a), cos/sin(phi_a - phi_b), phid_a^2 and absolute accelerations, on jets."""
+    n = len(q)
+    phi, diff = _angle_sums(q)
+    cos_phi = [p.cos() for p in phi]
+    cos_d = [[None] * n for _ in range(n)]
+    sin_d = [[None] * n for _ in range(n)]
+    for a in range(n):
+        for b in range(a):
+            cos_d[a][b] = cos_d[b][a] = diff[a][b].cos()
+            sin_d[a][b] = diff[a][b].sin()
+            sin_d[b][a] = -sin_d[a][b]
+    rate_sq = [r.square() for r in _running(qd)]
+    return cos_phi, cos_d, sin_d, rate_sq, _running(accel)
+
+
+def _torque_terms(weights, cos_phi, cos_d, sin_d, rate_sq, acc, gravity_weights):
+    """``sum_b W_ab (C_ab acc_b + Sn_ab rate_b^2) + G_a cos(phi_a)`` per link ``a`` (a list)."""
+    n = len(cos_phi)
+    out = []
+    for a in range(n):
+        total = acc[a] * weights[a][a] + cos_phi[a] * gravity_weights[a]
+        for b in range(n):
+            if b != a:
+                total = total + (acc[b] * cos_d[a][b] + rate_sq[b] * sin_d[a][b]) * weights[a][b]
+        out.append(total)
+    return out
+
+
+def planar_perturbation_jets(q, qd, th, nominal, u, kp, kd, noise=None):
+    """``gv = qdd - v`` of the planar point-mass arm on jets: a list of ``n`` jets.
+
+    Written as ``gv = M(q; th)^-1 f`` with
+    ``f = (M(q; th_n) - M(q; th)) v + h(q, qd; th_n) - h(q, qd; th) + tau(y) - tau(x)``,
+    whose terms each vanish at ``th = th_n`` (and the last at zero noise), so
+    interval enclosures do not carry the size of ``v``. In absolute angles
+    ``M = S' (W o C) S`` and ``h = S' (W o Sn) phid^2 + S' g mu l cos phi``
+    (SPEC section 1), and ``M x = S' b`` is solved as
+    ``(Mu o C)(l o S x) = b / l`` by the model's ``LDL'`` (:func:`rmijax._linalg.ldl_factor`).
+
+    Args:
+        q, qd: the true state, lists of ``n`` jets (rad, rad/s).
+        th: ``2n`` jets, masses (kg) then lengths (m).
+        nominal: ``2n`` constants (intervals of the backend): the controller's ``th_n``.
+        u, kp, kd: ``n`` constants each: feed-forward (rad/s^2) and gains.
+        noise: None, or ``(eq, eqd)``: lists of ``n`` jets, the reading errors
+            that the controller sees (``y = x + eta``).
+
+    Returns:
+        ``n`` jets of ``gv`` (rad/s^2).
+    """
+    n = len(q)
+    masses, lengths = th[:n], th[n:]
+    nominal_masses, nominal_lengths = nominal[:n], nominal[n:]
+    mu = tail_sums(masses)
+    mu_n = tail_sums(nominal_masses)
+
+    def servo(qq, qqd):
+        return [(qqd[i] * kd[i] + qq[i] * kp[i]) * -1.0 + u[i] for i in range(n)]
+
+    nominal_w = [
+        [mu_n[max(a, b)] * nominal_lengths[a] * nominal_lengths[b] for b in range(n)]
+        for a in range(n)
+    ]
+    delta_w = [
+        [(mu[max(a, b)] * lengths[a] * lengths[b]) * -1.0 + nominal_w[a][b] for b in range(n)]
+        for a in range(n)
+    ]
+    nominal_g = [mu_n[a] * nominal_lengths[a] * GRAVITY for a in range(n)]
+    delta_g = [(mu[a] * lengths[a]) * -GRAVITY + nominal_g[a] for a in range(n)]
+    v = servo(q, qd)
+    cos_phi, cos_d, sin_d, rate_sq, acc = _trig_state(q, qd, v)
+    f_phi = _torque_terms(delta_w, cos_phi, cos_d, sin_d, rate_sq, acc, delta_g)
+    if noise is not None:
+        eq, eqd = noise
+        yq = [q[i] + eq[i] for i in range(n)]
+        yqd = [qd[i] + eqd[i] for i in range(n)]
+        measured = _torque_terms(nominal_w, *_trig_state(yq, yqd, servo(yq, yqd)), nominal_g)
+        true = _torque_terms(nominal_w, cos_phi, cos_d, sin_d, rate_sq, acc, nominal_g)
+        f_phi = [f_phi[a] + measured[a] - true[a] for a in range(n)]
+    rhs = [f_phi[a] / lengths[a] for a in range(n)]
+    matrix = [[mu[a] * cos_d[a][b] for b in range(a)] + [mu[a]] for a in range(n)]
+    lower, _, inv_diag = ldl_factor(matrix)
+    psi = ldl_solve(lower, inv_diag, rhs)
+    phidd = [psi[a] / lengths[a] for a in range(n)]
+    return [phidd[0]] + [phidd[a] - phidd[a - 1] for a in range(1, n)]
+
+
+# --------------------------------------------------------------------------
+# Certificate
+# --------------------------------------------------------------------------
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Certificate:
+    """Everything needed to re-verify a certified band.
+
+    See :func:`rmijax.methods.certificate_check.check_certificate`.
+
+    ``P`` pieces of the box (one unless split), ``T`` steps, ``n`` joints,
+    ``p`` parameters, ``M`` kernel steps.
+
+    Attributes:
+        center: (P, p) expansion point ``th_c`` of each piece.
+        lo, hi: (P, p) each piece's box (their union is the whole box).
+        state: (P, T+1, n, 2) the centre run's coefficients ``x_c(k)``.
+        sens: (P, T+1, n, 2, p) first-order coefficients ``S_k``.
+        sens2: (P, T+1, n, 2, p, p) second-order coefficients ``Q_k``.
+        injected: (P, T, n, 2) ``w_k``: bound on the remainder's input at step k.
+        remainder: (P, T+1, n, 2) ``r_k``: bound on ``|R_k|``.
+        kernel: (M, n, 2, 2) upper bounds of ``|A_i^m|``.
+        tail: (n,) bound on ``sum_{m >= M} ||A_i^m||_inf``.
+        lower, upper: (T+1, n, 2) the band (noise included).
+        noise_lo, noise_hi: (n, 2) sensor noise bounds.
+        segments: radial segments of the Lagrange remainder (static).
+    """
+
+    center: jax.Array
+    lo: jax.Array
+    hi: jax.Array
+    state: jax.Array
+    sens: jax.Array
+    sens2: jax.Array
+    injected: jax.Array
+    remainder: jax.Array
+    kernel: jax.Array
+    tail: jax.Array
+    lower: jax.Array
+    upper: jax.Array
+    noise_lo: jax.Array
+    noise_hi: jax.Array
+    segments: int = dataclasses.field(default=3, metadata=dict(static=True))
+
+    @property
+    def n_pieces(self) -> int:
+        return self.center.shape[0]
+
+
+# --------------------------------------------------------------------------
+# Float helpers with rounding bounds
+# --------------------------------------------------------------------------
+
+
+def _sum_up(terms, axes, count):
+    """Upper bound of the exact sum of non-negative float products summed over ``axes``."""
+    return jnp.sum(terms, axis=axes) * (1.0 + (count + 8) * _EPS) + _TINY
+
+
+def _poly_range(sens, sens2, d_lo, d_hi):
+    """Sound range of ``s' d + 1/2 d' Q d`` over the box ``d_lo <= d <= d_hi``.
+
+    Args:
+        sens: (..., p); sens2: (..., p, p); d_lo, d_hi: (p,) with ``d_lo <= 0 <= d_hi``.
+
+    Returns:
+        ``(low, high)`` (...) floats bounding the exact range outward: each
+        one-dimensional quadratic ``s_b d_b + 1/2 Q_bb d_b^2`` exactly (ends and
+        vertex), each cross term ``Q_ab d_a d_b`` by its exact interval, summed.
+    """
+    p = sens.shape[-1]
+    d_lo, d_hi = jnp.broadcast_to(d_lo, sens.shape), jnp.broadcast_to(d_hi, sens.shape)
+    diag = 0.5 * jnp.diagonal(sens2, axis1=-2, axis2=-1)  # (..., p)
+    ends = jnp.stack([sens * d_lo + diag * d_lo**2, sens * d_hi + diag * d_hi**2])
+    safe = jnp.where(diag == 0, 1.0, diag)
+    vertex = -sens / (2.0 * safe)
+    inside = (diag != 0) & (vertex > d_lo) & (vertex < d_hi)
+    vertex_value = jnp.where(inside, -(sens**2) / (4.0 * safe), ends[0])
+    low_b = jnp.minimum(jnp.min(ends, axis=0), vertex_value)
+    high_b = jnp.maximum(jnp.max(ends, axis=0), vertex_value)
+    radius = jnp.maximum(-d_lo, d_hi)
+    magnitude = jnp.sum(jnp.abs(sens) * radius + jnp.abs(diag) * radius**2, axis=-1)
+    sym = 0.5 * (sens2 + jnp.swapaxes(sens2, -1, -2))
+    off = jnp.broadcast_to(1.0 - jnp.eye(p, dtype=sens.dtype), sym.shape)
+    a_lo, a_hi = d_lo[..., :, None], d_hi[..., :, None]
+    b_lo, b_hi = d_lo[..., None, :], d_hi[..., None, :]
+    products = jnp.stack(
+        [a_lo * b_lo, a_lo * b_hi, a_hi * b_lo, a_hi * b_hi]
+    )  # (4, p, p): d_a d_b at the box's corners (its exact range is their hull)
+    pair_lo, pair_hi = jnp.min(products, axis=0), jnp.max(products, axis=0)
+    cross = 0.5 * sym * off  # the pair (a, b) and (b, a) together: Q_ab d_a d_b
+    cross_lo = jnp.sum(jnp.minimum(cross * pair_lo, cross * pair_hi), axis=(-2, -1))
+    cross_hi = jnp.sum(jnp.maximum(cross * pair_lo, cross * pair_hi), axis=(-2, -1))
+    magnitude = magnitude + jnp.sum(
+        jnp.abs(cross) * radius[..., :, None] * radius[..., None, :], axis=(-2, -1)
+    )
+    slack = (p * p + 4 * p + 16) * _EPS * magnitude + _TINY
+    return jnp.sum(low_b, -1) + cross_lo - slack, jnp.sum(high_b, -1) + cross_hi + slack
+
+
+def _kernel(kp, kd, dt, steps):
+    """Upper bounds ``|A_i^m|`` (steps, n, 2, 2) and the tail coefficient (n,).
+
+    ``A_i = [[1, dt], [-Kp dt, 1 - Kd dt]]`` with its entries as exact reals;
+    powers in interval arithmetic. Tail: with ``a = ||A^M||_inf < 1``,
+    ``sum_{m >= M} ||A^m|| <= a sum_{j < M} ||A^j|| / (1 - a)``.
+    """
+    one = jnp.ones_like(kp)
+    a11, a12 = Interval(one), Interval(dt * one)
+    a21 = Interval(kp) * (-dt)
+    a22 = Interval(one) - Interval(kd) * dt
+
+    def body(power, _):
+        (p11, p12), (p21, p22) = power
+        nxt = (
+            (a11 * p11 + a12 * p21, a11 * p12 + a12 * p22),
+            (a21 * p11 + a22 * p21, a21 * p12 + a22 * p22),
+        )
+        return nxt, jnp.stack(
+            [jnp.stack([p11.mag(), p12.mag()], -1), jnp.stack([p21.mag(), p22.mag()], -1)], -2
+        )
+
+    zero = Interval(jnp.zeros_like(kp))
+    start = ((Interval(one), zero), (zero, Interval(one)))
+    last, mags = jax.lax.scan(body, start, None, length=steps)
+    (p11, p12), (p21, p22) = last
+    power_norm = up(jnp.maximum(p11.mag() + p12.mag(), p21.mag() + p22.mag()))
+    norms = jnp.max(jnp.sum(mags, axis=-1), axis=-1)  # (steps, n)
+    total = _sum_up(norms, 0, steps)
+    tail = up(up(power_norm * total) / jnp.maximum(1.0 - power_norm, _TINY))
+    tail = jnp.where(power_norm < 1.0, tail, jnp.inf)
+    return mags, tail
+
+
+# --------------------------------------------------------------------------
+# The certified run of one piece
+# --------------------------------------------------------------------------
+
+
+@functools.cache
+def _perturbation_tape(n, noisy):
+    """The tape of :func:`planar_perturbation_jets` for ``n`` joints, and its output rows.
+
+    Leaves, in order: ``q (n), qd (n), th (2n)``, with noise ``eq (n), eqd (n)``,
+    then the constants ``nominal (2n), u (n), kp (n), kd (n)``.
+    """
+    p = 2 * n
+    n_leaves = 2 * n + p + (2 * n if noisy else 0) + p + 3 * n
+    tape = Tape(n_leaves)
+    leaves = tape.leaves()
+    take = iter(leaves)
+    q, qd = [next(take) for _ in range(n)], [next(take) for _ in range(n)]
+    th = [next(take) for _ in range(p)]
+    noise = None
+    if noisy:
+        noise = ([next(take) for _ in range(n)], [next(take) for _ in range(n)])
+    nominal = [next(take) for _ in range(p)]
+    u, kp, kd = ([next(take) for _ in range(n)] for _ in range(3))
+    gv = planar_perturbation_jets(q, qd, th, nominal, u, kp, kd, noise)
+    return tape.arrays(), tuple(node.index for node in gv)
+
+
+def _cat(*parts):
+    return Interval(
+        jnp.concatenate([p.lo for p in parts], 0), jnp.concatenate([p.hi for p in parts], 0)
+    )
+
+
+def _evaluate(state, state_grad_d, sens2, th_value, noise_value, consts, remainder_box=None):
+    """``gv`` jets in the variables ``(d (p), R (2n)[, eta (2n)])`` of one step.
+
+    Args:
+        state: Interval (n, 2) values of the state; state_grad_d: Interval (n, 2, p)
+            its derivative in ``d``; sens2: (n, 2, p, p) its second derivative.
+        th_value: Interval (p,); noise_value: Interval (n, 2) or None.
+        consts: dict of nominal (p,), u, kp, kd (n,).
+
+    Returns:
+        Intervals ``gv`` (n,), gradient (n, m), Hessian (n, m, m).
+    """
+    n, p = state.shape[0], state_grad_d.shape[-1]
+    noisy = noise_value is not None
+    m = p + 2 * n + (2 * n if noisy else 0)
+    dtype = state.lo.dtype
+    eye = jnp.eye(m, dtype=dtype)
+    unit_r = eye[p : p + 2 * n].reshape(n, 2, m)
+    grad_d_full = Interval(
+        jnp.zeros((n, 2, m), dtype).at[..., :p].set(state_grad_d.lo) + unit_r,
+        jnp.zeros((n, 2, m), dtype).at[..., :p].set(state_grad_d.hi) + unit_r,
+    )
+    hess = jnp.zeros((n, 2, m, m), dtype).at[..., :p, :p].set(sens2)
+    swap = lambda x: jnp.swapaxes(x, 0, 1).reshape((2 * n,) + x.shape[2:])  # noqa: E731
+    values = [Interval(swap(state.lo), swap(state.hi)), th_value]
+    grads = [Interval(swap(grad_d_full.lo), swap(grad_d_full.hi)), Interval(eye[:p])]
+    hessians = [Interval(swap(hess)), Interval(jnp.zeros((p, m, m), dtype))]
+    if noisy:
+        values.append(Interval(swap(noise_value.lo), swap(noise_value.hi)))
+        grads.append(Interval(swap(eye[p + 2 * n :].reshape(n, 2, m))))
+        hessians.append(Interval(jnp.zeros((2 * n, m, m), dtype)))
+    constants = jnp.concatenate([consts["nominal"], consts["u"], consts["kp"], consts["kd"]])
+    values.append(Interval(constants))
+    grads.append(Interval(jnp.zeros((constants.shape[0], m), dtype)))
+    hessians.append(Interval(jnp.zeros((constants.shape[0], m, m), dtype)))
+    value, grad, hessian = _cat(*values), _cat(*grads), _cat(*hessians)
+    tape, rows = _perturbation_tape(n, noisy)
+    leaves = (value.lo, value.hi, grad.lo, grad.hi, hessian.lo, hessian.hi)
+    return run_tape(tape, leaves, np.asarray(rows))
+
+
+def _certify_piece(
+    center, lo, hi, traj, nominal, noise_lo, noise_hi, kernel, tail, noisy, scale, segments
+):
+    """The Taylor-model induction over the whole run for one piece of the box.
+
+    ``scale`` multiplies the remainder (1 in use; the tests' mutations set it to
+    0 or 0.5 to show that it matters).
+    """
+    n = traj.n_joints
+    p = center.shape[0]
+    dtype = center.dtype
+    d_lo = Interval(lo) - Interval(center)
+    d_hi = Interval(hi) - Interval(center)
+    d_lo, d_hi = jnp.minimum(d_lo.lo, 0.0), jnp.maximum(d_hi.hi, 0.0)
+    d_box = Interval(d_lo, d_hi)
+    d_rad = jnp.maximum(-d_lo, d_hi)
+    d_outer = d_rad[:, None] * d_rad[None, :]
+    # the noise variables are expanded at 0, so their box must hold 0
+    noise_box = Interval(jnp.minimum(noise_lo, 0.0), jnp.maximum(noise_hi, 0.0)) if noisy else None
+    kp, kd, dt = traj.kp, traj.kd, traj.dt
+    eta_hat = jnp.maximum(jnp.abs(noise_lo), jnp.abs(noise_hi))
+    steps = kernel.shape[0]
+    # radial segments [j/J, (j+1)/J] and their weights int (1 - s) ds (rounded up)
+    seg_hi = (np.arange(segments) + 1.0) / segments
+    seg_lo = np.arange(segments) / segments
+    seg_weight = up(jnp.asarray((seg_hi - seg_lo) - 0.5 * (seg_hi**2 - seg_lo**2), dtype))
+    seg_hi = jnp.asarray(seg_hi, dtype)
+    m = p + 2 * n + (2 * n if noisy else 0)
+
+    def step(carry, u):
+        xc, sens, sens2, buf, tail_max, rhat = carry
+        consts = dict(nominal=nominal, u=u, kp=kp, kd=kd)
+        # --- the centre: coefficients of the next Taylor model ---------------
+        zero_noise = Interval(jnp.zeros((n, 2), dtype)) if noisy else None
+        g0, g1, g2 = _evaluate(
+            Interval(xc), Interval(sens), sens2, Interval(center), zero_noise, consts, None
+        )
+        kp_c, kd_c = kp[:, None], kd[:, None]
+        q, qd = Interval(xc[:, 0]), Interval(xc[:, 1])
+        c0 = (q + qd * dt, qd + ((Interval(u) - qd * kd - q * kp) + g0) * dt)
+        sq, sqd = Interval(sens[:, 0]), Interval(sens[:, 1])
+        c1 = (sq + sqd * dt, sqd + ((sqd * (-kd_c) + sq * (-kp_c)) + g1[:, :p]) * dt)
+        qq, qqd = Interval(sens2[:, 0]), Interval(sens2[:, 1])
+        c2 = (
+            qq + qqd * dt,
+            qqd + ((qqd * (-kd_c[..., None]) + qq * (-kp_c[..., None])) + g2[:, :p, :p]) * dt,
+        )
+        new = [jnp.stack([c[0].mid(), c[1].mid()], axis=1) for c in (c0, c1, c2)]
+        new[2] = 0.5 * (new[2] + jnp.swapaxes(new[2], -1, -2))  # exactly symmetric
+        eps = [
+            jnp.stack([c[0].radius_about(v[:, 0]), c[1].radius_about(v[:, 1])], axis=1)
+            for c, v in zip((c0, c1, c2), new, strict=True)
+        ]
+        rounding = (
+            eps[0]
+            + _sum_up(eps[1] * d_rad[None, None, :], -1, p)
+            + 0.5 * _sum_up(eps[2] * d_outer[None, None], (-2, -1), p * p)
+        ) * (1.0 + 8 * _EPS)
+        # --- the Hessian over the tube, on nested boxes s Z (radial segments) -----
+        centre_h = Interval(
+            jnp.zeros((n, m, m), dtype).at[:, :p, :p].set(g2.lo[:, :p, :p]),
+            jnp.zeros((n, m, m), dtype).at[:, :p, :p].set(g2.hi[:, :p, :p]),
+        )
+
+        def segment_spread(s_hi, weight):
+            sd_box = d_box * s_hi  # rounded outward: holds s D for every s <= s_hi
+            low, high = _poly_range(sens, sens2, sd_box.lo, sd_box.hi)
+            tube = Interval(xc) + Interval(low, high) + Interval(-rhat, rhat) * s_hi
+            grad_d = Interval(sens) + (Interval(sens2) * sd_box[None, None, None, :]).sum(-1)
+            th_box = Interval(center) + sd_box
+            noise_s = noise_box * s_hi if noisy else None
+            _, _, h_box = _evaluate(tube, grad_d, sens2, th_box, noise_s, consts, None)
+            return (h_box - centre_h).mag() * weight
+
+        spread = jnp.sum(jax.vmap(segment_spread)(seg_hi, seg_weight), axis=0)
+        spread = spread * (1.0 + (segments + 4) * _EPS)
+        parts = [d_rad, rhat.reshape(-1)] + ([eta_hat.reshape(-1)] if noisy else [])
+        v_hat = jnp.concatenate(parts)
+        linear = g1.mag()[:, p:] * v_hat[None, p:]
+        quadratic = spread * v_hat[None, :, None] * v_hat[None, None, :]
+        w = _sum_up(linear, -1, m) + _sum_up(quadratic, (-2, -1), m * m)
+        w = w * (1.0 + 4 * _EPS) + _TINY
+        injected = rounding.at[:, 1].add(up(dt * w) * scale)
+        injected = injected * (1.0 + 4 * _EPS) + _TINY
+        # --- the remainder bound of the next step -----------------------------
+        dropped = buf[-1]
+        buf = jnp.concatenate([injected[None], buf[:-1]], axis=0)
+        tail_max = jnp.maximum(tail_max, jnp.max(dropped, axis=-1))
+        rhat_next = (
+            _sum_up(kernel * buf[:, :, None, :], (0, -1), 2 * steps) + up(tail * tail_max)[:, None]
+        )
+        rhat_next = rhat_next * (1.0 + 4 * _EPS) + _TINY
+        carry = (new[0], new[1], new[2], buf, tail_max, rhat_next)
+        return carry, (new[0], new[1], new[2], injected, rhat_next)
+
+    x0 = traj.x_n[0]
+    init = (
+        x0,
+        jnp.zeros((n, 2, p), dtype),
+        jnp.zeros((n, 2, p, p), dtype),
+        jnp.zeros((steps, n, 2), dtype),
+        jnp.zeros((n,), dtype),
+        jnp.zeros((n, 2), dtype),
+    )
+    _, (xs, ss, qs, injected, rhats) = jax.lax.scan(step, init, traj.u_d[:-1])
+    cat = lambda first, rest: jnp.concatenate([first[None], rest], 0)  # noqa: E731
+    state = cat(x0, xs)
+    sens = cat(init[1], ss)
+    sens2 = cat(init[2], qs)
+    remainder = cat(init[5], rhats)
+    low, high = _poly_range(sens, sens2, d_lo, d_hi)
+    band = Interval(state) + Interval(low, high) + Interval(-remainder, remainder)
+    band = band + Interval(*(jnp.broadcast_to(v, state.shape) for v in (noise_lo, noise_hi)))
+    return dict(
+        state=state,
+        sens=sens,
+        sens2=sens2,
+        injected=injected,
+        remainder=remainder,
+        lower=band.lo,
+        upper=band.hi,
+    )
+
+
+@functools.partial(jax.jit, static_argnames=("noisy", "kernel_steps", "segments"))
+def _certify(
+    traj, params, centers, los, his, noise_lo, noise_hi, scale, *, noisy, kernel_steps, segments
+):
+    kernel, tail = _kernel(traj.kp, traj.kd, traj.dt, kernel_steps)
+    run = functools.partial(
+        _certify_piece,
+        traj=traj,
+        nominal=params.nominal,
+        noise_lo=noise_lo,
+        noise_hi=noise_hi,
+        kernel=kernel,
+        tail=tail,
+        noisy=noisy,
+        scale=scale,
+        segments=segments,
+    )
+    pieces = jax.vmap(run)(centers, los, his)
+    return pieces, kernel, tail
+
+
+# --------------------------------------------------------------------------
+# Splitting the box
+# --------------------------------------------------------------------------
+
+
+def _pieces(params, splits):
+    """Pieces of the box: a product grid, ``splits[b]`` equal parts along parameter ``b``.
+
+    Returns ``(centers, lo, hi)``, each (P, p). A single piece is expanded at the
+    nominal (where ``gv`` vanishes identically); split pieces at their centres.
+    """
+    lo, hi, nominal = (np.asarray(a, np.float64) for a in (params.lo, params.hi, params.nominal))
+    p = lo.shape[0]
+    if all(s == 1 for s in splits):
+        return nominal[None], lo[None], hi[None]
+    cuts = [np.linspace(lo[b], hi[b], splits[b] + 1) for b in range(p)]
+    for b in range(p):  # ends exactly at the box's bounds
+        cuts[b][0], cuts[b][-1] = lo[b], hi[b]
+    grid = np.stack(np.meshgrid(*[np.arange(s) for s in splits], indexing="ij"), -1)
+    grid = grid.reshape(-1, p)
+    piece_lo = np.stack([cuts[b][grid[:, b]] for b in range(p)], -1)
+    piece_hi = np.stack([cuts[b][grid[:, b] + 1] for b in range(p)], -1)
+    centers = 0.5 * (piece_lo + piece_hi)
+    return centers, piece_lo, piece_hi
+
+
+def _split_counts(params, splits):
+    p = params.n_params
+    if splits is None:
+        splits = 4 if params.n_joints <= 2 else 2
+    if isinstance(splits, (int, np.integer)) and not isinstance(splits, bool):
+        if splits < 1:
+            raise ValueError(f"splits must be >= 1, got {splits}")
+        if splits == 1:
+            return (1,) * p
+        # split the masses (the parameters gv is most non-linear in) into `splits` parts
+        n = params.n_joints
+        return tuple(int(splits) if b < n else 1 for b in range(p))
+    counts = tuple(int(s) for s in splits)
+    if len(counts) != p or any(s < 1 for s in counts):
+        raise ValueError(f"splits must be an int >= 1 or {p} ints >= 1, got {splits!r}")
+    return counts
+
+
+# --------------------------------------------------------------------------
+# Public entry point
+# --------------------------------------------------------------------------
+
+
+def certified_bounds(
+    traj: Trajectory,
+    params: UncertainRobot,
+    *,
+    mode: str = "coupled",
+    window=None,
+    noise_lo=0.0,
+    noise_hi=0.0,
+    splits=None,
+    kernel_steps: int = KERNEL_STEPS,
+    segments: int = 3,
+    remainder_scale: float = 1.0,
+) -> tuple[Bounds, Certificate]:
+    """Bands proven to contain the output of every constant-parameter run, and their certificate.
+
+    See the module docstring for what is certified and how. The whole horizon
+    from ``x(0) = x_d(0)`` (no window restart).
+
+    Args:
+        traj: the desired motion, gains and step.
+        params: a planar point-mass arm with its parameter box.
+        mode: must be ``"coupled"`` (the true plant).
+        window: must be None (the certificate covers the whole run).
+        noise_lo, noise_hi: sensor noise bounds, scalar, (2,) or (n, 2): added to
+            the band, and their effect through the controller is enclosed.
+        splits: 1 (no split), an int ``s`` (each mass range in ``s`` equal parts:
+            ``s^n`` pieces), ``p`` ints (parts per parameter), or None: 4 up to
+            two joints, 2 above. The band is the union of the pieces' bands.
+        kernel_steps: ``M``, powers of ``A`` applied exactly to the remainder.
+        segments: ``J``, radial segments of the Lagrange remainder: the Hessian
+            is enclosed over the boxes ``(j / J) Z``, weighted by
+            ``int (1 - s) ds`` over each segment (more: tighter and slower).
+        remainder_scale: multiplies the remainder's input; anything but 1 voids
+            the guarantee (for mutation tests only).
+
+    Returns:
+        ``(bounds, certificate)``: :class:`~rmijax.methods.base.Bounds` with
+        ``lower``, ``upper``, ``nominal``, ``crossed`` (T+1, n, 2), and the
+        :class:`Certificate`.
+
+    Raises:
+        NotImplementedError: a model other than the planar point-mass arm.
+        ValueError: not float64, ``per_joint`` mode, a window, bad splits.
+        DivergedError: the remainder bound is not finite (box too wide or the
+            loop not contracting over it).
+    """
+    check_types(traj, params)
+    if mode != "coupled":
+        raise ValueError(
+            f"certified_bounds needs mode='coupled', got {mode!r}: it certifies the true "
+            "coupled plant with constant parameters"
+        )
+    if window is not None:
+        raise ValueError(
+            "certified_bounds has no window: it certifies the whole run from x(0) = x_d(0)"
+        )
+    if not isinstance(params.model.structure, PlanarPointMass):
+        raise NotImplementedError(
+            f"certified_bounds supports the planar point-mass arm (rmijax.planar_arm, "
+            f"preset_arm, paper_arm2, paper_pendulum) only, got model {params.model.name!r}: "
+            "its mass matrix and bias must be evaluated on interval 2-jets "
+            "(rmijax.methods.certified.planar_perturbation_jets shows what is needed)"
+        )
+    if params.n_joints != traj.n_joints:
+        raise ValueError(
+            f"traj has {traj.n_joints} joints but params describes a {params.n_joints}-joint robot"
+        )
+    dtype = jnp.result_type(traj.dtype, params.dtype)
+    if dtype != jnp.float64:
+        raise ValueError(
+            f"certified_bounds works in float64 (rounding is bounded for it), got {dtype}; "
+            'enable it with jax.config.update("jax_enable_x64", True) and pass float64 arrays'
+        )
+    _checks.check_stable(traj.kp, traj.kd, traj.dt)
+    n = traj.n_joints
+    lo_noise, hi_noise = _checks.noise_interval(noise_lo, noise_hi, n, dtype)
+    lo_noise = jnp.broadcast_to(lo_noise, (n, 2))
+    hi_noise = jnp.broadcast_to(hi_noise, (n, 2))
+    noisy = bool(np.any(np.asarray(lo_noise) != 0) or np.any(np.asarray(hi_noise) != 0))
+    kernel_steps = _checks.positive_int("kernel_steps", kernel_steps, "steps")
+    segments = _checks.positive_int("segments", segments)
+    centers, los, his = _pieces(params, _split_counts(params, splits))
+    pieces, kernel, tail = _certify(
+        traj,
+        params,
+        jnp.asarray(centers),
+        jnp.asarray(los),
+        jnp.asarray(his),
+        lo_noise,
+        hi_noise,
+        jnp.asarray(remainder_scale, dtype),
+        noisy=noisy,
+        kernel_steps=kernel_steps,
+        segments=segments,
+    )
+    lower = jnp.min(pieces["lower"], axis=0)
+    upper = jnp.max(pieces["upper"], axis=0)
+    where = _checks.first_non_finite(upper, lower)
+    if where is not None:
+        step, joint, sensor = where
+        raise DivergedError(
+            f"certified bounds are not finite (step {step}, joint {joint} "
+            f"{('encoder', 'tachometer')[sensor]}): the remainder bound diverged. Narrow the "
+            "parameter box, split it (splits=...) or use stiffer gains."
+        )
+    bounds = Bounds(lower=lower, upper=upper, nominal=traj.x_n, crossed=upper < lower, dt=traj.dt)
+    certificate = Certificate(
+        center=jnp.asarray(centers),
+        lo=jnp.asarray(los),
+        hi=jnp.asarray(his),
+        state=pieces["state"],
+        sens=pieces["sens"],
+        sens2=pieces["sens2"],
+        injected=pieces["injected"],
+        remainder=pieces["remainder"],
+        kernel=kernel,
+        tail=tail,
+        lower=lower,
+        upper=upper,
+        noise_lo=lo_noise,
+        noise_hi=hi_noise,
+        segments=segments,
+    )
+    return bounds, certificate

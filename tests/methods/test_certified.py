@@ -1,0 +1,219 @@
+"""Certified bounds: soundness (corners, draws, worst-case maximisers, an attack on the band),
+teeth (the remainder switched off, a tampered certificate), known answers and tightness."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import rmijax
+from rmijax.methods.certificate_check import check_certificate
+from rmijax.methods.certified import certified_bounds
+from rmijax.methods.linearized import window_output
+
+DURATION = 1.0
+TOL = 1e-12  # rounding level: the simulator's own float64 error on |y| ~ 1
+
+
+def _samples(params, count=300, seed=0):
+    lo, hi = np.asarray(params.lo), np.asarray(params.hi)
+    draws = lo + (hi - lo) * np.random.default_rng(seed).uniform(size=(count, lo.size))
+    return np.concatenate([np.asarray(params.corners), draws])
+
+
+def _escape(bounds, states):
+    """Largest amount (rad, rad/s) by which any sample leaves the band (<= 0: none)."""
+    upper, lower = np.asarray(bounds.upper), np.asarray(bounds.lower)
+    return float(max(np.max(states - upper), np.max(lower - states)))
+
+
+@pytest.fixture(scope="module")
+def pendulum():
+    params = rmijax.paper_pendulum()
+    traj = rmijax.trajectory(["sine"], duration=DURATION)
+    bounds, cert = certified_bounds(traj, params, splits=2)
+    return traj, params, bounds, cert
+
+
+def test_contains_corners_and_draws(pendulum):
+    traj, params, bounds, _ = pendulum
+    states, _ = rmijax.simulate(traj, params, _samples(params))
+    assert _escape(bounds, np.asarray(states)) <= TOL
+    assert bounds.lower.shape == (traj.n_steps + 1, 1, 2)
+    assert not bool(jnp.any(bounds.crossed))
+
+
+def test_contains_worst_case_maximisers(pendulum):
+    traj, params, bounds, _ = pendulum
+    times = [0.3, 0.6, 1.0]
+    table = rmijax.worst_case_table(traj, params, times, random_starts=2, iterations=20)
+    for m, step in enumerate(table["steps"]):
+        assert np.all(table["high"][m] <= np.asarray(bounds.upper[step]) + TOL)
+        assert np.all(table["low"][m] >= np.asarray(bounds.lower[step]) - TOL)
+
+
+def _attack(traj, params, bounds, steps, starts, iterations=30):
+    """Projected sign-gradient descent over th of the band's slack at the given steps."""
+    lo, hi = params.lo, params.hi
+    window = traj.n_steps
+    u_pad = jnp.concatenate([jnp.zeros((window, traj.n_joints)), traj.u_d], axis=0)
+    run = functools.partial(
+        window_output,
+        model=params.model,
+        nominal=params.nominal,
+        kp=traj.kp,
+        kd=traj.kd,
+        dt=traj.dt,
+    )
+
+    def slack(th, step, joint, sensor):
+        u_win = jax.lax.dynamic_slice_in_dim(u_pad, step, window, 0)
+        active = (step - window + jnp.arange(window)) >= 0
+        y = run(th, u_win, active, traj.x_n[0])[joint, sensor]
+        return jnp.minimum(
+            bounds.upper[step, joint, sensor] - y, y - bounds.lower[step, joint, sensor]
+        )
+
+    def descend(th, step, joint, sensor):
+        grad = jax.grad(slack)
+
+        def body(i, th):
+            rate = 0.2 * (0.01 / 0.2) ** (i / (iterations - 1))
+            return jnp.clip(th - rate * (hi - lo) * jnp.sign(grad(th, step, joint, sensor)), lo, hi)
+
+        return jax.lax.fori_loop(0, iterations, body, th)
+
+    targets = [(k, j, s) for k in steps for j in range(traj.n_joints) for s in range(2)]
+    found = []
+    search = jax.jit(jax.vmap(descend, in_axes=(0, None, None, None)))
+    for k, j, s in targets:
+        found.append(search(starts, k, j, s))
+    return jnp.concatenate(found)
+
+
+def test_adversarial_attack_on_the_band(pendulum):
+    traj, params, bounds, _ = pendulum
+    starts = jnp.asarray(_samples(params, count=4, seed=3))
+    found = _attack(traj, params, bounds, steps=[30, 60, 100], starts=starts)
+    states, _ = rmijax.simulate(traj, params, np.asarray(found))
+    assert _escape(bounds, np.asarray(states)) <= TOL
+
+
+def test_remainder_switched_off_lets_samples_escape(pendulum):
+    """The mutation: without the remainder the band is the quadratic's range alone."""
+    traj, params, _, _ = pendulum
+    mutant, _ = certified_bounds(traj, params, splits=2, remainder_scale=0.0)
+    states, _ = rmijax.simulate(traj, params, _samples(params))
+    assert _escape(mutant, np.asarray(states)) > 1e-9
+
+
+def test_checker_accepts_the_certificate_and_rejects_tampering(pendulum):
+    traj, params, _, cert = pendulum
+    steps = 4
+    assert check_certificate(cert, traj, params, steps=steps).ok
+    halved = dataclasses.replace(cert, injected=cert.injected * 0.5)
+    assert not check_certificate(halved, traj, params, steps=steps).ok
+    shrunk = dataclasses.replace(cert, remainder=cert.remainder.at[:, 2:].multiply(0.9))
+    assert not check_certificate(shrunk, traj, params, steps=steps).ok
+    narrow = dataclasses.replace(cert, upper=cert.upper.at[3, 0, 0].add(-1e-9))
+    assert not check_certificate(narrow, traj, params, steps=steps).ok
+    moved = dataclasses.replace(cert, sens=cert.sens.at[0, 2, 0, 1, 0].add(1e-6))
+    assert not check_certificate(moved, traj, params, steps=steps).ok
+    half_box = dataclasses.replace(cert, hi=cert.hi.at[1, 0].set(10.5))
+    assert not check_certificate(half_box, traj, params, steps=steps).ok
+
+
+def test_zero_width_box_gives_the_nominal(pendulum):
+    traj, params, _, _ = pendulum
+    point = params.with_box(lo=params.nominal, hi=params.nominal)
+    bounds, _ = certified_bounds(traj, point, splits=2)
+    np.testing.assert_allclose(bounds.lower, traj.x_n, atol=1e-12)
+    np.testing.assert_allclose(bounds.upper, traj.x_n, atol=1e-12)
+
+
+def test_one_parameter_against_a_dense_grid(pendulum):
+    """Known answer: mass uncertain only; the true range from a dense grid plus a Lipschitz
+    margin (grid spacing times the largest difference quotient) must lie inside the band,
+    and the band may exceed the grid's range by little."""
+    traj, params, _, _ = pendulum
+    box = params.with_box(lo=jnp.array([9.0, 1.0]), hi=jnp.array([11.0, 1.0]))
+    bounds, _ = certified_bounds(traj, box, splits=2)
+    masses = np.linspace(9.0, 11.0, 401)
+    grid = np.stack([masses, np.ones_like(masses)], -1)
+    states = np.asarray(rmijax.simulate(traj, box, grid)[0])  # (401, T+1, 1, 2)
+    spacing = masses[1] - masses[0]
+    lipschitz = np.max(np.abs(np.diff(states, axis=0)), axis=0) / spacing
+    high = states.max(0) + lipschitz * spacing / 2
+    low = states.min(0) - lipschitz * spacing / 2
+    assert np.all(np.asarray(bounds.upper) >= states.max(0) - TOL)
+    assert np.all(np.asarray(bounds.lower) <= states.min(0) + TOL)
+    k0 = int(round(0.5 / traj.dt))
+    ratio = np.asarray(bounds.width)[k0:] / (high - low)[k0:]
+    assert np.median(ratio) <= 1.5
+    assert np.all(np.asarray(bounds.width)[k0:] >= (states.max(0) - states.min(0))[k0:] - TOL)
+
+
+def test_tightness_against_the_sampled_range(pendulum):
+    traj, params, bounds, _ = pendulum
+    states = np.asarray(rmijax.simulate(traj, params, _samples(params))[0])
+    reached = states.max(0) - states.min(0)
+    k0 = int(round(0.5 / traj.dt))
+    ratio = np.asarray(bounds.width)[k0:] / reached[k0:]
+    assert np.all(ratio >= 1.0 - 1e-9)
+    for sensor in range(2):
+        assert np.median(ratio[..., sensor]) <= 1.5
+
+
+def test_dispatcher_and_refusals(pendulum):
+    traj, params, bounds, _ = pendulum
+    via = rmijax.bounds(traj, params, method="certified", splits=2)
+    np.testing.assert_array_equal(via.upper, bounds.upper)
+    assert "splits" in rmijax.methods.options_of("certified")
+    with pytest.raises(ValueError, match="window"):
+        rmijax.bounds(traj, params, method="certified", window=10)
+    with pytest.raises(ValueError, match="coupled"):
+        certified_bounds(traj, params, mode="per_joint")
+    model = dataclasses.replace(params.model, forward_dynamics=None)
+    other = rmijax.uncertain_robot(model, params.nominal, params.lo, params.hi)
+    with pytest.raises(NotImplementedError, match="planar"):
+        certified_bounds(traj, other)
+    with pytest.raises(ValueError, match="float64"):
+        certified_bounds(
+            rmijax.trajectory(["sine"], duration=0.1, dtype=jnp.float32),
+            rmijax.paper_pendulum(dtype=jnp.float32),
+        )
+
+
+@pytest.mark.slow
+def test_noise_through_the_controller():
+    params = rmijax.paper_pendulum()
+    traj = rmijax.trajectory(["sine"], duration=0.5)
+    noise_lo, noise_hi = np.array([-1e-3, -2e-3]), np.array([1e-3, 2e-3])
+    bounds, cert = certified_bounds(traj, params, splits=2, noise_lo=noise_lo, noise_hi=noise_hi)
+    for seed in range(3):
+        _, readings = rmijax.simulate(
+            traj,
+            params,
+            _samples(params, 50, seed),
+            noise_lo=noise_lo,
+            noise_hi=noise_hi,
+            seed=seed,
+        )
+        assert _escape(bounds, np.asarray(readings)) <= TOL
+    assert check_certificate(cert, traj, params, steps=2).ok
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("paths", [["hold", "sine"], ["slow_sine", "composite"]])
+def test_two_joint_arm_contains_samples(paths):
+    params = rmijax.paper_arm2()
+    traj = rmijax.trajectory(paths, duration=1.0)
+    bounds, cert = certified_bounds(traj, params)
+    states, _ = rmijax.simulate(traj, params, _samples(params, 200))
+    assert _escape(bounds, np.asarray(states)) <= TOL
+    assert check_certificate(cert, traj, params, steps=2, pieces=[0, 5]).ok

@@ -1,0 +1,95 @@
+"""Fleet batches: sharded over 4 forced host devices they equal the single-device results."""
+
+import json
+import os
+import pathlib
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+import rmijax
+from rmijax import fleet
+
+SRC = pathlib.Path(rmijax.__file__).parents[1]
+
+_SCRIPT = textwrap.dedent(
+    """
+    import json
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    import numpy as np
+    import rmijax
+    from rmijax import fleet
+
+    assert len(jax.devices()) == 4, jax.devices()
+    params = getattr(rmijax, ROBOT)()
+    paths = [("hold", "sine", 0.5), ("hold", "ramp", 0.3), ("slow_sine", "composite", 0.5),
+             ("hold", "sine", 0.3), ("sine", "hold", 0.5)]
+    trajs = [rmijax.trajectory([a, b][-params.n_joints:], duration=d) for a, b, d in paths]
+    boxes = [params, params.with_box(hi=params.hi * 1.001), params, params, params]
+    out = {"rmi": [], "rmi_sharded": [], "simulate": []}
+    for traj, box, bounds in zip(trajs, boxes, fleet.rmi_batch(trajs, boxes)):
+        ref = rmijax.rmi(traj, box)
+        out["rmi"].append(max(float(np.max(np.abs(bounds.lower - ref.lower))),
+                              float(np.max(np.abs(bounds.upper - ref.upper))),
+                              float(np.max(np.abs(bounds.nominal - ref.nominal)))))
+    for mode in ("coupled", "per_joint")[:params.n_joints]:
+        ref = rmijax.rmi(trajs[0], params, mode=mode, window=20)
+        got = fleet.rmi_sharded(trajs[0], params, mode=mode, window=20)  # 51 end steps on 4
+        out["rmi_sharded"].append(float(np.max(np.abs(got.upper - ref.upper))
+                                        + np.max(np.abs(got.lower - ref.lower))))
+    th = rmijax.monte_carlo_parameters(params, 2, seed=1)[:5]
+    last = params.n_joints - 1
+    faults = [[rmijax.Fault("stuck_sensors", last, 0.2)], [], [rmijax.Fault("drift", 0, 0.1, 0.1)],
+              [rmijax.Fault("locked", last, 0.2)], []]
+    xs, ys = fleet.simulate_batch(trajs, params, th, faults=faults)
+    for r in range(5):
+        x, y = rmijax.simulate(trajs[r], params, th[r], faults=faults[r])
+        assert xs[r].shape == x.shape
+        out["simulate"].append(float(max(np.max(np.abs(xs[r] - x)), np.max(np.abs(ys[r] - y)))))
+    print("RESULT", json.dumps(out))
+    """
+)
+
+
+@pytest.mark.parametrize(
+    "robot", ["paper_pendulum", pytest.param("paper_arm2", marks=pytest.mark.slow)]
+)
+def test_sharded_equals_single_device_on_4_host_devices(robot):
+    """rmi over 5 runs of 2 lengths and 2 boxes (5 on 4 devices: uneven), rmi over the
+    51 end steps of one run (both modes on the arm), simulate with faults: within 1e-12."""
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4")
+    env["PYTHONPATH"] = os.pathsep.join([str(SRC), env.get("PYTHONPATH", "")])
+    script = f"ROBOT = {robot!r}\n" + _SCRIPT
+    done = subprocess.run(
+        [sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=900
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    line = next(v for v in done.stdout.splitlines() if v.startswith("RESULT "))
+    result = json.loads(line[len("RESULT ") :])
+    assert len(result["rmi"]) == 5 and len(result["simulate"]) == 5
+    for key, errors in result.items():
+        assert max(errors) <= 1e-12, (key, errors)
+
+
+def test_batch_on_one_device_broadcasts_and_checks():
+    params = rmijax.paper_pendulum()
+    trajs = [rmijax.trajectory("sine", duration=d) for d in (0.3, 0.2)]
+    got = fleet.bounds_batch(trajs, params, method="rmi", window=10)
+    assert [b.lower.shape for b in got] == [(31, 1, 2), (21, 1, 2)]
+    ref = rmijax.rmi(trajs[1], params, window=10)
+    np.testing.assert_allclose(got[1].upper, ref.upper, atol=1e-12)
+    with pytest.raises(ValueError, match="batch sizes differ"):
+        fleet.rmi_batch(trajs, [params] * 3)
+    with pytest.raises(TypeError, match="trajs must be a Trajectory"):
+        fleet.rmi_batch([], params)
+    other = rmijax.trajectory("sine", duration=0.2, dt=0.005)
+    with pytest.raises(ValueError, match="different steps dt"):
+        fleet.rmi_batch([trajs[0], other], params, window=10)
+    x, y = fleet.simulate_batch(trajs[0], params, np.asarray(params.nominal))
+    assert len(x) == 1 and x[0].shape == (31, 1, 2)
+    assert fleet.device_mesh(1).size == 1
+    assert fleet.my_share(range(5)) == list(range(5))
