@@ -28,7 +28,7 @@ import tempfile
 import time
 
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
-from _common import device, markdown_table, table, write_json  # noqa: E402
+from _common import markdown_table, run_meta, table, write_json  # noqa: E402
 
 COLUMNS = [
     ("devices", "devices", "{:>7d}"),
@@ -184,9 +184,8 @@ def main(argv=None):
             flush=True,
         )
     meta = {
-        "device": device(),
+        **run_meta("benchmarks/fleet.py", argv, dtype="float64"),
         "cores": os.cpu_count(),
-        "script": "benchmarks/fleet.py",
         "args": vars(args),
         "forced_host_devices": not accelerators,
         "load_average_after": os.getloadavg(),

@@ -291,19 +291,31 @@ def agreement_table():
     return _table(header, rows)
 
 
+def _load_avg(meta):
+    load = meta.get("load_avg", meta.get("load_average_after"))
+    return ", ".join(f"{x:.2f}" for x in load) if load else "not recorded"
+
+
 def provenance():
     """Which command wrote each results file, from which commit, when, on what."""
     rows = []
     for path in sorted(RESULTS.glob("*.json")):
         meta = json.loads(path.read_text())["meta"]
+        commit, date = meta.get("commit"), meta.get("date")
+        if not commit:
+            added = meta.get("committed_in")
+            commit = f"not recorded (added in {added[:12]})" if added else "not recorded"
+        if not date:
+            added = meta.get("committed_on")
+            date = f"not recorded (added {added[:10]})" if added else "not recorded"
         rows.append(
             (
                 f"`{path.name}`",
-                f"`{meta.get('command', '?')}`",
-                meta.get("commit", "?")[:12] if meta.get("commit") else "not recorded",
-                meta.get("date", "not recorded"),
+                f"`{meta.get('command', 'not recorded')}`",
+                commit if commit.startswith("not") else commit[:12],
+                date,
                 meta.get("dtype", "?"),
-                ", ".join(str(x) for x in meta["load_avg"]) if "load_avg" in meta else "-",
+                _load_avg(meta),
             )
         )
     header = ("file", "command", "commit", "date", "dtype", "load (1/5/15 min)")
