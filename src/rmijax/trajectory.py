@@ -177,6 +177,17 @@ def _derivatives(fn, t):
     return jax.vmap(fn)(t), jax.vmap(velocity)(t), jax.vmap(acceleration)(t)
 
 
+@functools.partial(jax.jit, static_argnames=("fn", "dtype"))
+def _path_samples(t, *, fn, dtype):
+    """:func:`_derivatives` of one path as one compiled program per (path, length, dtype).
+
+    Run op by op, the three derivatives compiled a dozen small XLA programs per path and
+    run length; a named path is a module-level function, so its program is reused by
+    every trajectory of the same length.
+    """
+    return _derivatives(lambda s: jnp.asarray(fn(s), dtype), t)
+
+
 def trajectory(
     paths: str | Callable | Sequence[str | Callable],
     *,
@@ -233,11 +244,11 @@ def trajectory(
                 f"paths[{joint}] must return a scalar angle for a scalar time, "
                 f"got shape {probe.shape}"
             )
-        columns.append(_derivatives(lambda s, fn=fn: jnp.asarray(fn(s), dtype), t))
+        columns.append(_path_samples(t, fn=fn, dtype=jnp.dtype(dtype)))
         labels.append(label)
     q_d, qd_d, qdd_d = (jnp.stack([c[i] for c in columns], axis=-1) for i in range(3))
     for name, value in (("q_d", q_d), ("qd_d", qd_d), ("qdd_d", qdd_d)):
-        if not bool(jnp.all(jnp.isfinite(value))):
+        if not np.all(np.isfinite(np.asarray(value))):  # NumPy: no XLA program per shape
             raise ValueError(
                 f"the desired path gives a non-finite {name}; check the functions "
                 "passed in paths over [0, duration]"
