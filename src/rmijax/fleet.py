@@ -144,12 +144,17 @@ def _place(tree, mesh, spec):
 
 
 def _gather(tree):
-    """The whole of a (possibly multi-host) global array, as NumPy, on every process."""
-    if jax.process_count() > 1:
+    """The whole of each array, as NumPy, on every process (gathered across hosts only
+    when the mesh spans them; a mesh of local devices needs no other process)."""
+
+    def whole(x):
+        if getattr(x, "is_fully_addressable", True):
+            return np.asarray(x)
         from jax.experimental import multihost_utils
 
-        return multihost_utils.process_allgather(tree, tiled=True)
-    return jax.tree_util.tree_map(np.asarray, tree)
+        return np.asarray(multihost_utils.process_allgather(x, tiled=True))
+
+    return jax.tree_util.tree_map(whole, tree)
 
 
 @functools.lru_cache(maxsize=64)
