@@ -191,10 +191,12 @@ def _rmi_body(run, shared, *, mode, window, batch, search):
     )
 
 
-def _per_device_batch(params, mode, window, dtype, budget, n_end, runs_per_device, chunk_size):
+def _per_device_batch(
+    params, mode, window, dtype, budget, n_end, runs_per_device, chunk_size, search
+):
     if chunk_size is not None:
         return int(chunk_size)
-    single = _engine._batch_size(params, mode, window, dtype, budget, n_end, None, search="auto")
+    single = _engine._batch_size(params, mode, window, dtype, budget, n_end, None, search=search)
     return max(1, single // max(1, runs_per_device))
 
 
@@ -245,7 +247,7 @@ def rmi_batch(
     mesh = device_mesh() if mesh is None else mesh
     per_device = math.ceil(size / mesh.size)
     batch = _per_device_batch(
-        robots[0], mode, window, dtype, memory_budget, max(lengths), per_device, chunk_size
+        robots[0], mode, window, dtype, memory_budget, max(lengths), per_device, chunk_size, search
     )
     batched = _stack(list(zip(trajs, robots, strict=True)), mesh.size)
     static = dict(mode=mode, window=int(window), batch=batch, search=search)
@@ -295,7 +297,9 @@ def rmi_sharded(
     traj, params = _engine._cast(traj, params, dtype)
     mesh = device_mesh() if mesh is None else mesh
     n_end = traj.n_steps + 1
-    batch = _per_device_batch(params, mode, window, dtype, memory_budget, n_end, 1, chunk_size)
+    batch = _per_device_batch(
+        params, mode, window, dtype, memory_budget, n_end, 1, chunk_size, search
+    )
     # one slice: ``batch`` end steps per device; the whole run when no progress is shown
     piece = mesh.size * batch if progress else math.ceil(n_end / mesh.size) * mesh.size
     n_pieces = math.ceil(n_end / piece)
