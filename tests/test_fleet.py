@@ -93,3 +93,58 @@ def test_batch_on_one_device_broadcasts_and_checks():
     assert len(x) == 1 and x[0].shape == (31, 1, 2)
     assert fleet.device_mesh(1).size == 1
     assert fleet.my_share(range(5)) == list(range(5))
+
+
+_TWO_HOSTS = textwrap.dedent(
+    """
+    import sys
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    jax.distributed.initialize(sys.argv[1], num_processes=2, process_id=int(sys.argv[2]))
+    import numpy as np
+    import rmijax
+    from rmijax import fleet
+
+    assert jax.process_count() == 2 and len(jax.devices()) == 4, jax.devices()
+    params = rmijax.paper_pendulum()
+    trajs = [rmijax.trajectory("sine", duration=d) for d in (0.3, 0.2, 0.3)]
+    errors = [
+        float(np.max(np.abs(b.upper - rmijax.rmi(t, params, window=10).upper)))
+        for t, b in zip(trajs, fleet.rmi_batch(trajs, params, window=10))
+    ]
+    print("ERROR", max(errors), flush=True)
+    """
+)
+
+
+def _free_port():
+    import socket
+
+    with socket.socket() as probe:
+        probe.bind(("localhost", 0))
+        return probe.getsockname()[1]
+
+
+@pytest.mark.slow
+def test_two_processes_share_one_mesh():
+    """jax.distributed.initialize with 2 local processes x 2 host devices: one 4-device mesh,
+    every process gets the whole result, equal to one device."""
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    env["PYTHONPATH"] = os.pathsep.join([str(SRC), env.get("PYTHONPATH", "")])
+    address = f"localhost:{_free_port()}"
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-c", _TWO_HOSTS, address, str(rank)],
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for rank in range(2)
+    ]
+    outputs = [p.communicate(timeout=600) for p in procs]
+    for proc, (out, err) in zip(procs, outputs, strict=True):
+        assert proc.returncode == 0, err[-3000:]
+        line = next(v for v in out.splitlines() if v.startswith("ERROR "))
+        assert float(line.split()[1]) <= 1e-12

@@ -144,12 +144,17 @@ def _place(tree, mesh, spec):
 
 
 def _gather(tree):
-    """The whole of a (possibly multi-host) global array, as NumPy, on every process."""
-    if jax.process_count() > 1:
+    """The whole of each array, as NumPy, on every process (gathered across hosts only
+    when the mesh spans them; a mesh of local devices needs no other process)."""
+
+    def whole(x):
+        if getattr(x, "is_fully_addressable", True):
+            return np.asarray(x)
         from jax.experimental import multihost_utils
 
-        return multihost_utils.process_allgather(tree, tiled=True)
-    return jax.tree_util.tree_map(np.asarray, tree)
+        return np.asarray(multihost_utils.process_allgather(x, tiled=True))
+
+    return jax.tree_util.tree_map(whole, tree)
 
 
 @functools.lru_cache(maxsize=64)
@@ -186,10 +191,12 @@ def _rmi_body(run, shared, *, mode, window, batch, search):
     )
 
 
-def _per_device_batch(params, mode, window, dtype, budget, n_end, runs_per_device, chunk_size):
+def _per_device_batch(
+    params, mode, window, dtype, budget, n_end, runs_per_device, chunk_size, search
+):
     if chunk_size is not None:
         return int(chunk_size)
-    single = _engine._batch_size(params, mode, window, dtype, budget, n_end, None, search="auto")
+    single = _engine._batch_size(params, mode, window, dtype, budget, n_end, None, search=search)
     return max(1, single // max(1, runs_per_device))
 
 
@@ -240,7 +247,7 @@ def rmi_batch(
     mesh = device_mesh() if mesh is None else mesh
     per_device = math.ceil(size / mesh.size)
     batch = _per_device_batch(
-        robots[0], mode, window, dtype, memory_budget, max(lengths), per_device, chunk_size
+        robots[0], mode, window, dtype, memory_budget, max(lengths), per_device, chunk_size, search
     )
     batched = _stack(list(zip(trajs, robots, strict=True)), mesh.size)
     static = dict(mode=mode, window=int(window), batch=batch, search=search)
@@ -290,7 +297,9 @@ def rmi_sharded(
     traj, params = _engine._cast(traj, params, dtype)
     mesh = device_mesh() if mesh is None else mesh
     n_end = traj.n_steps + 1
-    batch = _per_device_batch(params, mode, window, dtype, memory_budget, n_end, 1, chunk_size)
+    batch = _per_device_batch(
+        params, mode, window, dtype, memory_budget, n_end, 1, chunk_size, search
+    )
     # one slice: ``batch`` end steps per device; the whole run when no progress is shown
     piece = mesh.size * batch if progress else math.ceil(n_end / mesh.size) * mesh.size
     n_pieces = math.ceil(n_end / piece)

@@ -23,6 +23,7 @@ __all__ = ["check_log", "main"]
 
 SENSORS = ("encoder", "tachometer")
 UNITS = ("rad", "rad/s")
+_SHUTDOWN_WAIT_S = 24 * 3600  # --distributed: how long a finished process waits for the rest
 
 
 class _Refused(Exception):
@@ -409,11 +410,12 @@ def main(argv=None) -> int:
         cluster = (args.coordinator, args.num_processes, args.process_id)
         if any(v is not None for v in cluster) and not args.distributed:
             raise _Refused("--coordinator/--num-processes/--process-id need --distributed")
-        params, paths, folder = _validate(args)
-        if args.distributed:
-            if not folder:
+        if args.distributed:  # before anything starts JAX's backend
+            if not pathlib.Path(args.log).is_dir():
                 raise _Refused("--distributed shares a folder of logs between processes")
-            jax.distributed.initialize(*cluster)
+            # processes share no data; one that ends early waits for the others
+            jax.distributed.initialize(*cluster, shutdown_timeout_seconds=_SHUTDOWN_WAIT_S)
+        params, paths, folder = _validate(args)
         devices = jax.local_devices()
         if args.devices is not None and args.devices > len(devices):
             raise _Refused(f"--devices {args.devices}: this process has {len(devices)} devices")

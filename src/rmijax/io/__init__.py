@@ -12,6 +12,7 @@ import pathlib
 
 from rmijax.io.log import (
     READING_RULES as READING_RULES,
+    REAL_ARM_BOX as REAL_ARM_BOX,
     Log as Log,
     LogError as LogError,
     resolve_robot as resolve_robot,
@@ -27,6 +28,7 @@ from rmijax.io.tables import (
 
 __all__ = [
     "READING_RULES",
+    "REAL_ARM_BOX",
     "Log",
     "LogError",
     "is_log",
