@@ -726,7 +726,9 @@ def load_robot(source, *, mass=0.0, payload=None, payload_link=None, payload_off
         forward_dynamics=dynamics.forward_dynamics,
         name=chain.name,
         param_names=dynamics.param_names,
-        structure=LinearDynamics(affine=dynamics.affine, terms=dynamics.terms),
+        structure=LinearDynamics(affine=dynamics.affine, terms=dynamics.terms,
+                                  affine_joints=dynamics.affine_joints,
+                                  reach=dynamics.reach),
     )
     return uncertain_robot(model, np.concatenate(nominal), np.concatenate(lo),
                            np.concatenate(hi), dtype=dtype)
