@@ -367,7 +367,7 @@ def window_extremes(u_win, xn_win, qddn_win, active, x0, consts, *, model, mode,
     sigma = sign[None, :] * consts["weights"][:, joint, sensor]  # (N, 4n)
     box = (nominal, consts["lo"], consts["hi"], kp, kd, dt)
 
-    if mode == "coupled" and isinstance(found, FactoredSearch):
+    if mode == "coupled" and hasattr(found, "coupled_step"):
 
         def step(states, inputs):
             u, sigma_s, on = inputs
