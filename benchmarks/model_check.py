@@ -23,6 +23,8 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
+from _common import run_meta  # noqa: E402
+
 import rmijax  # noqa: E402
 from rmijax.robots import check  # noqa: E402
 
@@ -86,7 +88,8 @@ def main(argv=None):
     )
     if args.json:
         with open(args.json, "w") as handle:
-            json.dump({"device": str(jax.devices()[0]), "seconds": rows}, handle, indent=1)
+            meta = run_meta("benchmarks/model_check.py", dtype="float64")
+            json.dump({"meta": meta, "seconds": rows}, handle, indent=1)
 
 
 if __name__ == "__main__":
