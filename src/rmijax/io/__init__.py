@@ -12,7 +12,6 @@ import pathlib
 
 from rmijax.io.log import (
     READING_RULES as READING_RULES,
-    REAL_ARM_BOX as REAL_ARM_BOX,
     Log as Log,
     LogError as LogError,
     resolve_robot as resolve_robot,
@@ -25,6 +24,7 @@ from rmijax.io.tables import (
     write_csv as write_csv,
     write_npz as write_npz,
 )
+from rmijax.robots.loaders import REAL_ARM_BOX as REAL_ARM_BOX
 
 __all__ = [
     "READING_RULES",
