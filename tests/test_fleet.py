@@ -78,7 +78,11 @@ def test_sharded_equals_single_device_on_4_host_devices(robot):
 def test_batch_on_one_device_broadcasts_and_checks():
     params = rmijax.paper_pendulum()
     trajs = [rmijax.trajectory("sine", duration=d) for d in (0.3, 0.2)]
+    compiled = fleet._program.cache_info().misses
     got = fleet.bounds_batch(trajs, params, method="rmi", window=10)
+    again = fleet.rmi_batch(trajs[::-1], params, window=10)  # same shapes: no new program
+    assert fleet._program.cache_info().misses == compiled + 1
+    np.testing.assert_array_equal(again[0].upper[:21], got[1].upper)
     assert [b.lower.shape for b in got] == [(31, 1, 2), (21, 1, 2)]
     ref = rmijax.rmi(trajs[1], params, window=10)
     np.testing.assert_allclose(got[1].upper, ref.upper, atol=1e-12)
@@ -91,6 +95,12 @@ def test_batch_on_one_device_broadcasts_and_checks():
         fleet.rmi_batch([trajs[0], other], params, window=10)
     x, y = fleet.simulate_batch(trajs[0], params, np.asarray(params.nominal))
     assert len(x) == 1 and x[0].shape == (31, 1, 2)
+    short = fleet.bounds_batch(trajs, params, method="short_window", readings=[y[0], y[0][:21]])
+    np.testing.assert_allclose(
+        short[1].upper,
+        rmijax.bounds(trajs[1], params, method="short_window", readings=y[0][:21]).upper,
+        atol=1e-12,
+    )
     assert fleet.device_mesh(1).size == 1
     assert fleet.my_share(range(5)) == list(range(5))
 

@@ -379,8 +379,9 @@ def simulate_batch(
         th_true: true parameters (p,) for every run or (B, p).
         faults: :class:`~rmijax.Fault` objects for every run, or one sequence per run.
         noise_lo, noise_hi: as :func:`rmijax.simulate`; run ``r`` draws its
-            noise with seed ``seed + r``, so it equals
-            ``rmijax.simulate(trajs[r], params[r], th_true[r], seed=seed + r)``.
+            noise with seed ``seed + r`` over the longest run's length, so a run of
+            that length equals ``rmijax.simulate(trajs[r], params[r], th_true[r],
+            seed=seed + r)`` (shorter runs get other draws of the same bounds).
         divergence_limit: as :func:`rmijax.simulate` (one warning for the batch).
         mesh: default :func:`device_mesh` over every device.
 
@@ -434,14 +435,17 @@ def simulate_batch(
     return x_true, y_meas
 
 
-def bounds_batch(trajs, params, *, method: str = "rmi", mesh: Mesh | None = None, **options):
+def bounds_batch(
+    trajs, params, *, method: str = "rmi", readings=None, mesh: Mesh | None = None, **options
+):
     """:func:`rmijax.bounds` of many runs; ``method="rmi"`` is sharded (:func:`rmi_batch`).
 
     The other methods have no batched engine yet: they run one after another
-    on the default device (same results, no speed-up). Returns one
+    on the default device (same results, no speed-up). ``readings``: one
+    (T_r+1, n, 2) array per run, for ``short_window``. Returns one
     :class:`~rmijax.Bounds` per run.
     """
-    if method == "rmi":
+    if method == "rmi" and readings is None:
         if options.get("window") is None:
             options.pop("window", None)
         options.pop("progress", None)
@@ -450,5 +454,11 @@ def bounds_batch(trajs, params, *, method: str = "rmi", mesh: Mesh | None = None
 
     trajs = _as_list(trajs, Trajectory, "trajs")
     robots = _as_list(params, UncertainRobot, "params")
-    size, (trajs, robots) = _broadcast([trajs, robots], ["trajs", "params"])
-    return [bounds(t, r, method=method, **options) for t, r in zip(trajs, robots, strict=True)]
+    per_run = [None] if readings is None else list(readings)
+    size, (trajs, robots, per_run) = _broadcast(
+        [trajs, robots, per_run], ["trajs", "params", "readings"]
+    )
+    return [
+        bounds(t, r, method=method, readings=y, **options)
+        for t, r, y in zip(trajs, robots, per_run, strict=True)
+    ]
