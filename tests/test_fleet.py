@@ -30,7 +30,7 @@ _SCRIPT = textwrap.dedent(
              ("hold", "sine", 0.3), ("sine", "hold", 0.5)]
     trajs = [rmijax.trajectory([a, b][-params.n_joints:], duration=d) for a, b, d in paths]
     boxes = [params, params.with_box(hi=params.hi * 1.001), params, params, params]
-    out = {"rmi": [], "rmi_sharded": [], "simulate": []}
+    out = {"rmi": [], "rmi_sharded": [], "simulate": [], "certified": []}
     for traj, box, bounds in zip(trajs, boxes, fleet.rmi_batch(trajs, boxes)):
         ref = rmijax.rmi(traj, box)
         out["rmi"].append(max(float(np.max(np.abs(bounds.lower - ref.lower))),
@@ -41,6 +41,11 @@ _SCRIPT = textwrap.dedent(
         got = fleet.rmi_sharded(trajs[0], params, mode=mode, window=20)  # 51 end steps on 4
         out["rmi_sharded"].append(float(np.max(np.abs(got.upper - ref.upper))
                                         + np.max(np.abs(got.lower - ref.lower))))
+    certified = fleet.bounds_batch(trajs, boxes, method="certified") if CERTIFIED else []
+    for traj, box, bounds in zip(trajs, boxes, certified):
+        ref = rmijax.bounds(traj, box, method="certified")
+        out["certified"].append(max(float(np.max(np.abs(bounds.lower - ref.lower))),
+                                    float(np.max(np.abs(bounds.upper - ref.upper)))))
     th = rmijax.monte_carlo_parameters(params, 2, seed=1)[:5]
     last = params.n_joints - 1
     faults = [[rmijax.Fault("stuck_sensors", last, 0.2)], [], [rmijax.Fault("drift", 0, 0.1, 0.1)],
@@ -56,23 +61,30 @@ _SCRIPT = textwrap.dedent(
 
 
 @pytest.mark.parametrize(
-    "robot", ["paper_pendulum", pytest.param("paper_arm2", marks=pytest.mark.slow)]
+    "robot, certified",
+    [
+        ("paper_pendulum", False),
+        pytest.param("paper_pendulum", True, marks=pytest.mark.slow),
+        pytest.param("paper_arm2", False, marks=pytest.mark.slow),
+    ],
 )
-def test_sharded_equals_single_device_on_4_host_devices(robot):
-    """rmi over 5 runs of 2 lengths and 2 boxes (5 on 4 devices: uneven), rmi over the
-    51 end steps of one run (both modes on the arm), simulate with faults: within 1e-12."""
+def test_sharded_equals_single_device_on_4_host_devices(robot, certified):
+    """rmi and certified over 5 runs of 2 lengths and 2 boxes (5 on 4 devices: uneven), rmi
+    over the 51 end steps of one run (both modes on the arm), simulate with faults: all
+    within 1e-12 of one device."""
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4")
     env["PYTHONPATH"] = os.pathsep.join([str(SRC), env.get("PYTHONPATH", "")])
-    script = f"ROBOT = {robot!r}\n" + _SCRIPT
+    script = f"ROBOT = {robot!r}\nCERTIFIED = {certified}\n" + _SCRIPT
     done = subprocess.run(
         [sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=900
     )
     assert done.returncode == 0, done.stderr[-3000:]
     line = next(v for v in done.stdout.splitlines() if v.startswith("RESULT "))
     result = json.loads(line[len("RESULT ") :])
-    assert len(result["rmi"]) == 5 and len(result["simulate"]) == 5
+    assert len(result["rmi"]) == len(result["simulate"]) == 5
+    assert len(result["certified"]) == (5 if certified else 0)
     for key, errors in result.items():
-        assert max(errors) <= 1e-12, (key, errors)
+        assert max(errors, default=0.0) <= 1e-12, (key, errors)
 
 
 def test_batch_on_one_device_broadcasts_and_checks():

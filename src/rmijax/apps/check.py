@@ -112,8 +112,8 @@ def _validate(args):
     }.items():
         if value is not None and value < 1:
             raise _Refused(f"{name} must be >= 1, got {value!r}")
-    if args.method == "empirical" and args.window is not None:
-        raise _Refused("--method empirical has no --window")
+    if args.method in ("empirical", "certified") and args.window is not None:
+        raise _Refused(f"--method {args.method} has no --window")
     if args.mode == "per_joint" and args.method not in ("rmi", "short_window", "corner_search"):
         raise _Refused(f"--mode per_joint does not apply to --method {args.method}")
     try:
@@ -363,7 +363,7 @@ def _write(out, log, bounds, report, figure=True):
 
 
 def _bands(logs, params, args, mesh):
-    """Bands of every log: sharded RMI for ``rmi``, one after another otherwise."""
+    """Bands of every log: sharded for ``rmi`` and ``certified``, one after another otherwise."""
     from rmijax import fleet
     from rmijax.methods.dispatch import bounds as bounds_of
 
@@ -385,6 +385,8 @@ def _bands(logs, params, args, mesh):
         return fleet.rmi_batch(
             [log.traj for log in logs], params, mode=args.mode, mesh=mesh, **window, **noise
         )
+    if args.method == "certified":
+        return fleet.certified_batch([log.traj for log in logs], params, mesh=mesh, **noise)
     return [
         bounds_of(
             log.traj,
