@@ -371,5 +371,6 @@ def spatial_dynamics(
         function.__doc__ = (function.__doc__ or "") + f"\n\n    Parameters (p={n_params}): {names}"
     affine_joints = tuple(j for _ in friction for j in range(n))
     last_joint = tuple(int(b) for b in attach) + affine_joints
-    return SpatialDynamics(mass_matrix, bias, forward_dynamics, terms, tuple(names), affine,
-                           affine_joints, last_joint)
+    return SpatialDynamics(
+        mass_matrix, bias, forward_dynamics, terms, tuple(names), affine, affine_joints, last_joint
+    )
