@@ -30,7 +30,7 @@ _SCRIPT = textwrap.dedent(
              ("hold", "sine", 0.3), ("sine", "hold", 0.5)]
     trajs = [rmijax.trajectory([a, b][-params.n_joints:], duration=d) for a, b, d in paths]
     boxes = [params, params.with_box(hi=params.hi * 1.001), params, params, params]
-    out = {"rmi": [], "rmi_sharded": [], "simulate": []}
+    out = {"rmi": [], "rmi_sharded": [], "simulate": [], "certified": []}
     for traj, box, bounds in zip(trajs, boxes, fleet.rmi_batch(trajs, boxes)):
         ref = rmijax.rmi(traj, box)
         out["rmi"].append(max(float(np.max(np.abs(bounds.lower - ref.lower))),
@@ -41,6 +41,11 @@ _SCRIPT = textwrap.dedent(
         got = fleet.rmi_sharded(trajs[0], params, mode=mode, window=20)  # 51 end steps on 4
         out["rmi_sharded"].append(float(np.max(np.abs(got.upper - ref.upper))
                                         + np.max(np.abs(got.lower - ref.lower))))
+    certified = fleet.bounds_batch(trajs, boxes, method="certified") if CERTIFIED else []
+    for traj, box, bounds in zip(trajs, boxes, certified):
+        ref = rmijax.bounds(traj, box, method="certified")
+        out["certified"].append(max(float(np.max(np.abs(bounds.lower - ref.lower))),
+                                    float(np.max(np.abs(bounds.upper - ref.upper)))))
     th = rmijax.monte_carlo_parameters(params, 2, seed=1)[:5]
     last = params.n_joints - 1
     faults = [[rmijax.Fault("stuck_sensors", last, 0.2)], [], [rmijax.Fault("drift", 0, 0.1, 0.1)],
@@ -56,29 +61,40 @@ _SCRIPT = textwrap.dedent(
 
 
 @pytest.mark.parametrize(
-    "robot", ["paper_pendulum", pytest.param("paper_arm2", marks=pytest.mark.slow)]
+    "robot, certified",
+    [
+        ("paper_pendulum", False),
+        pytest.param("paper_pendulum", True, marks=pytest.mark.slow),
+        pytest.param("paper_arm2", False, marks=pytest.mark.slow),
+    ],
 )
-def test_sharded_equals_single_device_on_4_host_devices(robot):
-    """rmi over 5 runs of 2 lengths and 2 boxes (5 on 4 devices: uneven), rmi over the
-    51 end steps of one run (both modes on the arm), simulate with faults: within 1e-12."""
+def test_sharded_equals_single_device_on_4_host_devices(robot, certified):
+    """rmi and certified over 5 runs of 2 lengths and 2 boxes (5 on 4 devices: uneven), rmi
+    over the 51 end steps of one run (both modes on the arm), simulate with faults: all
+    within 1e-12 of one device."""
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4")
     env["PYTHONPATH"] = os.pathsep.join([str(SRC), env.get("PYTHONPATH", "")])
-    script = f"ROBOT = {robot!r}\n" + _SCRIPT
+    script = f"ROBOT = {robot!r}\nCERTIFIED = {certified}\n" + _SCRIPT
     done = subprocess.run(
         [sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=900
     )
     assert done.returncode == 0, done.stderr[-3000:]
     line = next(v for v in done.stdout.splitlines() if v.startswith("RESULT "))
     result = json.loads(line[len("RESULT ") :])
-    assert len(result["rmi"]) == 5 and len(result["simulate"]) == 5
+    assert len(result["rmi"]) == len(result["simulate"]) == 5
+    assert len(result["certified"]) == (5 if certified else 0)
     for key, errors in result.items():
-        assert max(errors) <= 1e-12, (key, errors)
+        assert max(errors, default=0.0) <= 1e-12, (key, errors)
 
 
 def test_batch_on_one_device_broadcasts_and_checks():
     params = rmijax.paper_pendulum()
     trajs = [rmijax.trajectory("sine", duration=d) for d in (0.3, 0.2)]
+    compiled = fleet._program.cache_info().misses
     got = fleet.bounds_batch(trajs, params, method="rmi", window=10)
+    again = fleet.rmi_batch(trajs[::-1], params, window=10)  # same shapes: no new program
+    assert fleet._program.cache_info().misses == compiled + 1
+    np.testing.assert_array_equal(again[0].upper[:21], got[1].upper)
     assert [b.lower.shape for b in got] == [(31, 1, 2), (21, 1, 2)]
     ref = rmijax.rmi(trajs[1], params, window=10)
     np.testing.assert_allclose(got[1].upper, ref.upper, atol=1e-12)
@@ -91,5 +107,66 @@ def test_batch_on_one_device_broadcasts_and_checks():
         fleet.rmi_batch([trajs[0], other], params, window=10)
     x, y = fleet.simulate_batch(trajs[0], params, np.asarray(params.nominal))
     assert len(x) == 1 and x[0].shape == (31, 1, 2)
+    short = fleet.bounds_batch(trajs, params, method="short_window", readings=[y[0], y[0][:21]])
+    np.testing.assert_allclose(
+        short[1].upper,
+        rmijax.bounds(trajs[1], params, method="short_window", readings=y[0][:21]).upper,
+        atol=1e-12,
+    )
     assert fleet.device_mesh(1).size == 1
     assert fleet.my_share(range(5)) == list(range(5))
+
+
+_TWO_HOSTS = textwrap.dedent(
+    """
+    import sys
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    jax.distributed.initialize(sys.argv[1], num_processes=2, process_id=int(sys.argv[2]))
+    import numpy as np
+    import rmijax
+    from rmijax import fleet
+
+    assert jax.process_count() == 2 and len(jax.devices()) == 4, jax.devices()
+    params = rmijax.paper_pendulum()
+    trajs = [rmijax.trajectory("sine", duration=d) for d in (0.3, 0.2, 0.3)]
+    errors = [
+        float(np.max(np.abs(b.upper - rmijax.rmi(t, params, window=10).upper)))
+        for t, b in zip(trajs, fleet.rmi_batch(trajs, params, window=10))
+    ]
+    print("ERROR", max(errors), flush=True)
+    """
+)
+
+
+def _free_port():
+    import socket
+
+    with socket.socket() as probe:
+        probe.bind(("localhost", 0))
+        return probe.getsockname()[1]
+
+
+@pytest.mark.slow
+def test_two_processes_share_one_mesh():
+    """jax.distributed.initialize with 2 local processes x 2 host devices: one 4-device mesh,
+    every process gets the whole result, equal to one device."""
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    env["PYTHONPATH"] = os.pathsep.join([str(SRC), env.get("PYTHONPATH", "")])
+    address = f"localhost:{_free_port()}"
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-c", _TWO_HOSTS, address, str(rank)],
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for rank in range(2)
+    ]
+    outputs = [p.communicate(timeout=600) for p in procs]
+    for proc, (out, err) in zip(procs, outputs, strict=True):
+        assert proc.returncode == 0, err[-3000:]
+        line = next(v for v in out.splitlines() if v.startswith("ERROR "))
+        assert float(line.split()[1]) <= 1e-12

@@ -616,10 +616,22 @@ def test_constant_corners_with_certain_parameters_equal_the_full_envelope(arm):
     np.testing.assert_allclose(reduced.lower, every.lower, rtol=0, atol=1e-12)
 
 
-def test_a_window_longer_than_the_run_gives_the_same_bounds(pend):
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        dict(method="rmi"),
+        dict(method="short_window", readings="x_n", noise_lo=-1e-3, noise_hi=1e-3),
+        dict(method="linearized"),
+        dict(method="constant_corners", horizon="window"),
+        dict(method="corner_search"),
+    ],
+)
+def test_a_window_longer_than_the_run_gives_the_same_bounds(pend, kwargs):
     params, traj = pend
-    long = rmijax.rmi(traj, params, window=10**6)
-    short = rmijax.rmi(traj, params, window=traj.n_steps)
+    if kwargs.get("readings") == "x_n":
+        kwargs = {**kwargs, "readings": traj.x_n}
+    long = rmijax.bounds(traj, params, window=10**6, **kwargs)
+    short = rmijax.bounds(traj, params, window=traj.n_steps, **kwargs)
     np.testing.assert_array_equal(long.upper, short.upper)
     np.testing.assert_array_equal(long.lower, short.lower)
 

@@ -38,7 +38,8 @@ def test_every_fault_kind_on_the_panda(panda, move, kind):
     joint, onset, value = 3, 0.2, 0.05
     k_f = round(onset / move.dt)
     th = np.asarray(panda.nominal)
-    fault = rmijax.Fault(kind, joint, onset, value=value if kind in ("bias", "drift") else 0.0)
+    extra = dict(value=value) if kind in ("bias", "drift") else {}
+    fault = rmijax.Fault(kind, joint, onset, **extra)
     healthy_x, healthy_y = rmijax.simulate(move, panda, th)
     x_true, y = rmijax.simulate(move, panda, th, faults=[fault])
     after = slice(k_f, None)
@@ -72,7 +73,7 @@ def test_monitor_equals_offline_rmi_on_the_panda(panda, move):
     mon = rmijax.monitor(panda, kp=move.kp, kd=move.kd, dt=move.dt, window=window)
     state = mon.init(move.q_d[0], move.qd_d[0])
     update = jax.jit(mon.update)
-    for k in range(1, 16):
+    for k in range(16):  # tick k takes sample k and returns end step k's bounds
         desired = (move.q_d[k], move.qd_d[k], move.qdd_d[k])
         state, out = update(state, desired, readings[k])
         np.testing.assert_allclose(out.upper, offline.upper[k], rtol=0, atol=1e-10)

@@ -4,6 +4,7 @@ Importing rmijax changes no JAX configuration: choose float64 yourself with
 ``jax.config.update("jax_enable_x64", True)`` (or pass float64 arrays).
 """
 
+from rmijax import fleet as fleet
 from rmijax.apps import experiments as experiments
 from rmijax.control import (
     closed_loop_step as closed_loop_step,
@@ -119,6 +120,7 @@ __all__ = [
     "empirical_thresholds",
     "estimate_memory",
     "experiments",
+    "fleet",
     "load_robot",
     "monitor",
     "monte_carlo_parameters",

@@ -40,6 +40,7 @@ from rmijax.trajectory import Trajectory
 __all__ = [
     "AXIS",
     "bounds_batch",
+    "certified_batch",
     "device_mesh",
     "my_share",
     "rmi_batch",
@@ -144,12 +145,17 @@ def _place(tree, mesh, spec):
 
 
 def _gather(tree):
-    """The whole of a (possibly multi-host) global array, as NumPy, on every process."""
-    if jax.process_count() > 1:
+    """The whole of each array, as NumPy, on every process (gathered across hosts only
+    when the mesh spans them; a mesh of local devices needs no other process)."""
+
+    def whole(x):
+        if getattr(x, "is_fully_addressable", True):
+            return np.asarray(x)
         from jax.experimental import multihost_utils
 
-        return multihost_utils.process_allgather(tree, tiled=True)
-    return jax.tree_util.tree_map(np.asarray, tree)
+        return np.asarray(multihost_utils.process_allgather(x, tiled=True))
+
+    return jax.tree_util.tree_map(whole, tree)
 
 
 @functools.lru_cache(maxsize=64)
@@ -186,10 +192,12 @@ def _rmi_body(run, shared, *, mode, window, batch, search):
     )
 
 
-def _per_device_batch(params, mode, window, dtype, budget, n_end, runs_per_device, chunk_size):
+def _per_device_batch(
+    params, mode, window, dtype, budget, n_end, runs_per_device, chunk_size, search
+):
     if chunk_size is not None:
         return int(chunk_size)
-    single = _engine._batch_size(params, mode, window, dtype, budget, n_end, None, search="auto")
+    single = _engine._batch_size(params, mode, window, dtype, budget, n_end, None, search=search)
     return max(1, single // max(1, runs_per_device))
 
 
@@ -240,7 +248,7 @@ def rmi_batch(
     mesh = device_mesh() if mesh is None else mesh
     per_device = math.ceil(size / mesh.size)
     batch = _per_device_batch(
-        robots[0], mode, window, dtype, memory_budget, max(lengths), per_device, chunk_size
+        robots[0], mode, window, dtype, memory_budget, max(lengths), per_device, chunk_size, search
     )
     batched = _stack(list(zip(trajs, robots, strict=True)), mesh.size)
     static = dict(mode=mode, window=int(window), batch=batch, search=search)
@@ -290,7 +298,9 @@ def rmi_sharded(
     traj, params = _engine._cast(traj, params, dtype)
     mesh = device_mesh() if mesh is None else mesh
     n_end = traj.n_steps + 1
-    batch = _per_device_batch(params, mode, window, dtype, memory_budget, n_end, 1, chunk_size)
+    batch = _per_device_batch(
+        params, mode, window, dtype, memory_budget, n_end, 1, chunk_size, search
+    )
     # one slice: ``batch`` end steps per device; the whole run when no progress is shown
     piece = mesh.size * batch if progress else math.ceil(n_end / mesh.size) * mesh.size
     n_pieces = math.ceil(n_end / piece)
@@ -370,8 +380,9 @@ def simulate_batch(
         th_true: true parameters (p,) for every run or (B, p).
         faults: :class:`~rmijax.Fault` objects for every run, or one sequence per run.
         noise_lo, noise_hi: as :func:`rmijax.simulate`; run ``r`` draws its
-            noise with seed ``seed + r``, so it equals
-            ``rmijax.simulate(trajs[r], params[r], th_true[r], seed=seed + r)``.
+            noise with seed ``seed + r`` over the longest run's length, so a run of
+            that length equals ``rmijax.simulate(trajs[r], params[r], th_true[r],
+            seed=seed + r)`` (shorter runs get other draws of the same bounds).
         divergence_limit: as :func:`rmijax.simulate` (one warning for the batch).
         mesh: default :func:`device_mesh` over every device.
 
@@ -425,14 +436,125 @@ def simulate_batch(
     return x_true, y_meas
 
 
-def bounds_batch(trajs, params, *, method: str = "rmi", mesh: Mesh | None = None, **options):
+def _certified_body(run, shared, *, noisy, kernel_steps, segments):
+    from rmijax.methods import certified
+
+    traj, params, centers, los, his = run
+    noise_lo, noise_hi, scale = shared
+    pieces, _, _ = certified._certify(
+        traj,
+        params,
+        centers,
+        los,
+        his,
+        noise_lo,
+        noise_hi,
+        scale,
+        noisy=noisy,
+        kernel_steps=kernel_steps,
+        segments=segments,
+    )
+    return jnp.min(pieces["lower"], axis=0), jnp.max(pieces["upper"], axis=0)
+
+
+def certified_batch(
+    trajs,
+    params,
+    *,
+    noise_lo=0.0,
+    noise_hi=0.0,
+    splits=None,
+    kernel_steps: int | None = None,
+    segments: int = 3,
+    mesh: Mesh | None = None,
+) -> list[Bounds]:
+    """:func:`rmijax.methods.certified.certified_bounds` of many runs, sharded like
+    :func:`rmi_batch` (the bands only; the certificates stay with the single-run call).
+
+    Args:
+        trajs, params: as :func:`rmi_batch` (planar point-mass arms, float64; every
+            box split into the same number of pieces).
+        noise_lo, noise_hi, splits, kernel_steps, segments: as ``certified_bounds``.
+        mesh: default :func:`device_mesh` over every device.
+
+    Returns:
+        One :class:`~rmijax.Bounds` per run (NumPy, (T_r+1, n, 2)).
+    """
+    from rmijax import _checks
+    from rmijax.methods import certified
+    from rmijax.methods.base import DivergedError, check_types
+    from rmijax.robots.structure import PlanarPointMass
+
+    trajs = _as_list(trajs, Trajectory, "trajs")
+    robots = _as_list(params, UncertainRobot, "params")
+    size, (trajs, robots) = _broadcast([trajs, robots], ["trajs", "params"])
+    for traj, robot in zip(trajs, robots, strict=True):
+        check_types(traj, robot)
+        if not isinstance(robot.model.structure, PlanarPointMass):
+            raise NotImplementedError(
+                "certified bounds support the planar point-mass arm only, got model "
+                f"{robot.model.name!r}"
+            )
+        if jnp.result_type(traj.dtype, robot.dtype) != jnp.float64:
+            raise ValueError("certified bounds work in float64: enable jax_enable_x64")
+        if robot.n_joints != traj.n_joints:
+            raise ValueError(f"a run has {traj.n_joints} joints for a {robot.n_joints}-joint arm")
+        _checks.check_stable(traj.kp, traj.kd, traj.dt)
+    n = trajs[0].n_joints
+    lo, hi = _checks.noise_interval(noise_lo, noise_hi, n, jnp.float64)
+    lo, hi = jnp.broadcast_to(lo, (n, 2)), jnp.broadcast_to(hi, (n, 2))
+    noisy = bool(np.any(np.asarray(lo) != 0) or np.any(np.asarray(hi) != 0))
+    kernel_steps = certified.KERNEL_STEPS if kernel_steps is None else kernel_steps
+    kernel_steps = _checks.positive_int("kernel_steps", kernel_steps, "steps")
+    segments = _checks.positive_int("segments", segments)
+    boxes = [certified._pieces(r, certified._split_counts(r, splits)) for r in robots]
+    if len({b[0].shape for b in boxes}) > 1:
+        raise ValueError("every box must split into the same number of pieces (give splits=)")
+    lengths = [t.n_steps + 1 for t in trajs]
+    trajs = _same_grid(trajs)
+    runs = [
+        (t, r, *(jnp.asarray(a, jnp.float64) for a in box))
+        for t, r, box in zip(trajs, robots, boxes, strict=True)
+    ]
+    mesh = device_mesh() if mesh is None else mesh
+    shared = (lo, hi, jnp.asarray(1.0, jnp.float64))
+    static = dict(noisy=noisy, kernel_steps=kernel_steps, segments=segments)
+    lower, upper = _run_batched(_certified_body, _stack(runs, mesh.size), shared, mesh, static)
+    results = []
+    for r, length in enumerate(lengths):
+        low, high = lower[r, :length], upper[r, :length]
+        where = _checks.first_non_finite(high, low)
+        if where is not None:
+            raise DivergedError(
+                f"certified bounds of run {r} are not finite (step {where[0]}): the remainder "
+                "bound diverged. Narrow the box, split it (splits=...) or use stiffer gains."
+            )
+        nominal = np.asarray(trajs[r].x_n)[:length]
+        results.append(
+            Bounds(lower=low, upper=high, nominal=nominal, crossed=high < low, dt=trajs[0].dt)
+        )
+    return results
+
+
+def bounds_batch(
+    trajs, params, *, method: str = "rmi", readings=None, mesh: Mesh | None = None, **options
+):
     """:func:`rmijax.bounds` of many runs; ``method="rmi"`` is sharded (:func:`rmi_batch`).
 
-    The other methods have no batched engine yet: they run one after another
-    on the default device (same results, no speed-up). Returns one
+    ``method="certified"`` is sharded too (:func:`certified_batch`). The other
+    methods have no batched engine yet: they run one after another
+    on the default device (same results, no speed-up). ``readings``: one
+    (T_r+1, n, 2) array per run, for ``short_window``. Returns one
     :class:`~rmijax.Bounds` per run.
     """
-    if method == "rmi":
+    if method == "certified" and readings is None:
+        if options.get("window") is not None:
+            raise ValueError("method='certified' has no window: it certifies the whole run")
+        if options.pop("mode", "coupled") != "coupled":
+            raise ValueError("method='certified' certifies the coupled plant: mode='coupled'")
+        options.pop("window", None)
+        return certified_batch(trajs, params, mesh=mesh, **options)
+    if method == "rmi" and readings is None:
         if options.get("window") is None:
             options.pop("window", None)
         options.pop("progress", None)
@@ -441,5 +563,11 @@ def bounds_batch(trajs, params, *, method: str = "rmi", mesh: Mesh | None = None
 
     trajs = _as_list(trajs, Trajectory, "trajs")
     robots = _as_list(params, UncertainRobot, "params")
-    size, (trajs, robots) = _broadcast([trajs, robots], ["trajs", "params"])
-    return [bounds(t, r, method=method, **options) for t, r in zip(trajs, robots, strict=True)]
+    per_run = [None] if readings is None else list(readings)
+    size, (trajs, robots, per_run) = _broadcast(
+        [trajs, robots, per_run], ["trajs", "params", "readings"]
+    )
+    return [
+        bounds(t, r, method=method, readings=y, **options)
+        for t, r, y in zip(trajs, robots, per_run, strict=True)
+    ]

@@ -366,6 +366,16 @@ def simulate(
             f"(p = {p} parameters), got shape {th.shape}"
         )
     th = th[None] if single else th
+    runs = th.shape[0]
+    shape = (runs, traj.n_steps + 1, n, 2)
+    needed = _ARRAYS_PER_RUN * math.prod(shape) * jnp.dtype(dtype).itemsize
+    if needed > MEMORY_BUDGET:
+        fit = max(1, MEMORY_BUDGET // (needed // runs))
+        raise _checks.ProblemTooLargeError(
+            f"simulating {runs} runs of {traj.n_steps + 1} steps needs about "
+            f"{needed / 2**30:.1f} GiB, over the {MEMORY_BUDGET / 2**30:g} GiB budget; pass "
+            f"th_true in batches of at most {fit} runs (empirical_thresholds: runs <= {fit})"
+        )
     _checks.check_finite("th_true", th)
     if isinstance(faults, Fault):
         faults = (faults,)
@@ -386,16 +396,6 @@ def simulate(
                 UserWarning,
                 stacklevel=2,
             )
-    runs = th.shape[0]
-    shape = (runs, traj.n_steps + 1, n, 2)
-    needed = _ARRAYS_PER_RUN * math.prod(shape) * jnp.dtype(dtype).itemsize
-    if needed > MEMORY_BUDGET:
-        fit = max(1, MEMORY_BUDGET // (needed // runs))
-        raise _checks.ProblemTooLargeError(
-            f"simulating {runs} runs of {traj.n_steps + 1} steps needs about "
-            f"{needed / 2**30:.1f} GiB, over the {MEMORY_BUDGET / 2**30:g} GiB budget; pass "
-            f"th_true in batches of at most {fit} runs (empirical_thresholds: runs <= {fit})"
-        )
     uniform = jax.random.uniform(jax.random.PRNGKey(seed), shape, dtype)
     noise = jnp.broadcast_to(lo, shape) + jnp.broadcast_to(hi - lo, shape) * uniform
     traj, params = _checks.cast_tree(traj, dtype), _checks.cast_tree(params, dtype)

@@ -127,3 +127,37 @@ def test_real_arm_log(tmp_path):
     report = json.loads((out / "report.json").read_text())
     assert report["joint_names"][3] == "joint4" and report["alarm"]
     assert report["first_alarm"]["time_s"] >= 0.2
+
+
+def test_two_processes_share_a_folder(logs, tmp_path):
+    """--distributed: 2 local processes (jax.distributed.initialize) take half the logs each."""
+    import os
+    import socket
+    import subprocess
+
+    with socket.socket() as probe:
+        probe.bind(("localhost", 0))
+        address = f"localhost:{probe.getsockname()[1]}"
+    src = pathlib.Path(rmijax.__file__).parents[1]
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(src), os.environ.get("PYTHONPATH", "")]))
+    out = tmp_path / "hosts"
+    command = [sys.executable, "-m", "rmijax.apps.cli", "check", str(logs), "--robot"]
+    command += ["paper_arm2", "--out", str(out), "--no-progress", "--no-figures", "--distributed"]
+    command += ["--coordinator", address, "--num-processes", "2", "--process-id"]
+    procs = [
+        subprocess.Popen(
+            command + [str(rank)],
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for rank in range(2)
+    ]
+    for proc in procs:
+        _, err = proc.communicate(timeout=600)
+        assert proc.returncode == 0, err[-3000:]
+    shares = [json.loads((out / f"summary.{rank}.json").read_text())["logs"] for rank in (0, 1)]
+    logs_seen = sorted(row["log"] for share in shares for row in share)
+    assert logs_seen == ["broken.csv", "healthy.npz", "stuck.csv", "stuck_bag"]
+    assert [len(share) for share in shares] == [2, 2]

@@ -60,3 +60,31 @@ def test_bag_without_reference_is_refused(run, tmp_path):
         writer.add_connection("/joint_states", "sensor_msgs/msg/JointState", typestore=typestore)
     with pytest.raises(LogError, match="no control_msgs/msg/JointTrajectoryControllerState or"):
         rmijax.read_log(path, robot="paper_arm2")
+
+
+def test_joint_states_without_velocity_are_refused(run, tmp_path):
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    from rmijax.io import ros
+
+    typestore = get_typestore(Stores.ROS2_HUMBLE)
+    typestore.register(ros.control_msgs_types(2))
+    types = typestore.types
+    path = tmp_path / "no_velocity"
+    with Writer(path, version=9, storage_plugin=StoragePlugin.SQLITE3) as writer:
+        states = writer.add_connection("/joint_states", ros.JOINT_STATE, typestore=typestore)
+        writer.add_connection("/state", ros.CONTROLLER_STATE, typestore=typestore)
+        header = types["std_msgs/msg/Header"](
+            stamp=types["builtin_interfaces/msg/Time"](sec=1, nanosec=0), frame_id=""
+        )
+        msg = types[ros.JOINT_STATE](
+            header=header,
+            name=["joint1", "joint2"],
+            position=np.zeros(2),
+            velocity=np.zeros(0),
+            effort=np.zeros(0),
+        )
+        writer.write(states, 10**9, typestore.serialize_cdr(msg, ros.JOINT_STATE))
+    with pytest.raises(LogError, match="has no velocity"):
+        rmijax.read_log(path, robot="paper_arm2")

@@ -167,6 +167,7 @@ def test_robot_names_resolve():
 def test_real_arm_log_matches_the_chain_joints(tmp_path):
     """A Panda log (the real-arm job's move, nominal readings) reads by the chain's joint names."""
     from rmijax.apps import real_arm
+
     traj = real_arm.pick_and_place(real_arm.home_pose("panda"), segment_time=0.05)
     names = rmijax.io.robot_joint_names("panda")
     assert len(names) == 7 and names[0] == "joint1"

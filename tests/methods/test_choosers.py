@@ -102,6 +102,9 @@ def _count_bias_calls(search):
     calls = collections.Counter()
     params = friction_arm(counter=lambda th: calls.update({"bias": np.size(th)}))
     traj = rmijax.trajectory(["slow_sine", "composite"], duration=0.1)
+    rmijax.check_model(params, traj)  # the model check runs (and is cached) before any run
+    jax.effects_barrier()
+    calls.clear()
     bounds = rmijax.rmi_step(traj, params, 10, window=3, search=search)
     jax.block_until_ready(bounds.upper)
     return calls["bias"], bounds

@@ -23,6 +23,7 @@ __all__ = ["check_log", "main"]
 
 SENSORS = ("encoder", "tachometer")
 UNITS = ("rad", "rad/s")
+_SHUTDOWN_WAIT_S = 24 * 3600  # --distributed: how long a finished process waits for the rest
 
 
 class _Refused(Exception):
@@ -111,8 +112,8 @@ def _validate(args):
     }.items():
         if value is not None and value < 1:
             raise _Refused(f"{name} must be >= 1, got {value!r}")
-    if args.method == "empirical" and args.window is not None:
-        raise _Refused("--method empirical has no --window")
+    if args.method in ("empirical", "certified") and args.window is not None:
+        raise _Refused(f"--method {args.method} has no --window")
     if args.mode == "per_joint" and args.method not in ("rmi", "short_window", "corner_search"):
         raise _Refused(f"--mode per_joint does not apply to --method {args.method}")
     try:
@@ -362,7 +363,7 @@ def _write(out, log, bounds, report, figure=True):
 
 
 def _bands(logs, params, args, mesh):
-    """Bands of every log: sharded RMI for ``rmi``, one after another otherwise."""
+    """Bands of every log: sharded for ``rmi`` and ``certified``, one after another otherwise."""
     from rmijax import fleet
     from rmijax.methods.dispatch import bounds as bounds_of
 
@@ -384,6 +385,8 @@ def _bands(logs, params, args, mesh):
         return fleet.rmi_batch(
             [log.traj for log in logs], params, mode=args.mode, mesh=mesh, **window, **noise
         )
+    if args.method == "certified":
+        return fleet.certified_batch([log.traj for log in logs], params, mesh=mesh, **noise)
     return [
         bounds_of(
             log.traj,
@@ -409,11 +412,12 @@ def main(argv=None) -> int:
         cluster = (args.coordinator, args.num_processes, args.process_id)
         if any(v is not None for v in cluster) and not args.distributed:
             raise _Refused("--coordinator/--num-processes/--process-id need --distributed")
-        params, paths, folder = _validate(args)
-        if args.distributed:
-            if not folder:
+        if args.distributed:  # before anything starts JAX's backend
+            if not pathlib.Path(args.log).is_dir():
                 raise _Refused("--distributed shares a folder of logs between processes")
-            jax.distributed.initialize(*cluster)
+            # processes share no data; one that ends early waits for the others
+            jax.distributed.initialize(*cluster, shutdown_timeout_seconds=_SHUTDOWN_WAIT_S)
+        params, paths, folder = _validate(args)
         devices = jax.local_devices()
         if args.devices is not None and args.devices > len(devices):
             raise _Refused(f"--devices {args.devices}: this process has {len(devices)} devices")

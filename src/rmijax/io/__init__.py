@@ -24,9 +24,11 @@ from rmijax.io.tables import (
     write_csv as write_csv,
     write_npz as write_npz,
 )
+from rmijax.robots.loaders import REAL_ARM_BOX as REAL_ARM_BOX
 
 __all__ = [
     "READING_RULES",
+    "REAL_ARM_BOX",
     "Log",
     "LogError",
     "is_log",

@@ -162,15 +162,14 @@ def robot_joint_names(robot) -> tuple[str, ...]:
     A real arm's name (or URDF/MJCF path) gives its chain's joint names
     (:func:`rmijax.robots.loaders.load_chain`); anything else :func:`joint_names`.
     """
-    if isinstance(robot, (str, pathlib.Path)) and not _PRESET.match(str(robot)):
-        if str(robot) not in ("paper_pendulum", "paper_arm2"):
-            try:
-                from rmijax.robots.loaders import load_chain
-            except ImportError:
-                load_chain = None
-            if load_chain is not None:
-                return tuple(load_chain(str(robot)).joint_names)
-    return joint_names(resolve_robot(robot))
+    params = resolve_robot(robot)  # unknown names are refused here, with the known ones
+    name = str(robot).strip() if isinstance(robot, (str, pathlib.Path)) else None
+    planar = name is None or _PRESET.match(name) or name in ("paper_pendulum", "paper_arm2")
+    if not planar:
+        from rmijax.robots.loaders import load_chain
+
+        return tuple(load_chain(name).joint_names)
+    return joint_names(params)
 
 
 def joint_names(params: UncertainRobot) -> tuple[str, ...]:

@@ -10,7 +10,9 @@ corner is found is taken from what the model declares
   parameters the score is affine in the declared ones, so they are chosen by
   the sign of their coefficient (:class:`StructuredChooser`);
 - :class:`~rmijax.robots.structure.LinearDynamics`: the same choice, with every
-  corner's ``M`` and ``h`` contracted from terms computed once per state;
+  corner's ``M`` and ``h`` contracted from terms computed once per state, and in
+  ``coupled`` mode whole window steps of every track at once
+  (:mod:`rmijax.methods.linear_search`, :class:`LinearChooser`);
 - :class:`~rmijax.robots.structure.PlanarPointMass`: the planar arm's factored
   search (:data:`rmijax.methods.planar_search.SEARCH`).
 
@@ -23,7 +25,9 @@ A *chooser* is a callable ``(perturbation, weight, offset, consts) -> th``:
 ``sigma v_i`` (for the tie tolerance) and ``consts`` the window constants
 (``nominal``, ``lo``, ``hi`` and, for enumeration, ``corners``). A chooser may
 also offer ``coupled(q, qd, tau, v, onehot, weight, offset, consts) -> th`` for
-``coupled`` mode when it can use the state directly.
+``coupled`` mode when it can use the state directly, or ``coupled_step(states, u,
+weights, onehots, nominal, lo, hi, kp, kd, dt) -> states`` to run a whole
+``coupled`` window step of every track (as the planar arm's factored search does).
 """
 
 from __future__ import annotations
@@ -35,8 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from rmijax._linalg import ldl_factor, ldl_solve
-from rmijax.methods import planar_search
+from rmijax.methods import linear_search, planar_search
 from rmijax.robots.structure import AffineBias, LinearDynamics, PlanarPointMass
 
 __all__ = [
@@ -218,37 +221,41 @@ class StructuredChooser:
 
 @dataclasses.dataclass(frozen=True)
 class LinearChooser(StructuredChooser):
-    """:class:`StructuredChooser` whose ``coupled`` mode contracts the declared terms.
+    """:class:`StructuredChooser` whose ``coupled`` mode runs whole window steps.
 
-    Per track step: the terms once, then for every enumerated corner ``M`` and
-    ``h`` by contraction, one ``LDL'`` factorisation and one solve for the
-    track's row of ``M^-1``; the score and the affine coefficients are dot
-    products with it.
+    ``coupled_step`` (:func:`rmijax.methods.linear_search.coupled_window_step`)
+    takes every track of a window step at once: the terms once per track, then per
+    (track, enumerated corner) the row of ``M^-1`` and the score, with the
+    factorisation shared along a serial chain when ``reach`` is declared; the
+    engine calls it in place of a per-track chooser.
+
+    Attributes:
+        affine_joints: for each affine parameter the joint whose bias it alone
+            enters, or None (see :class:`LinearDynamics`).
+        reach: per parameter the last joint its terms touch, or None.
     """
 
-    def coupled(self, q, qd, tau, v, onehot, weight, offset, consts):
-        corners = self._corners(consts)  # (E, p)
-        enum, affine = np.asarray(self.enumerated, int), np.asarray(self.affine, int)
-        m0, m_terms, h0, h_terms = self.terms(q, qd)
-        n = q.shape[0]
-        rows, cols = np.tril_indices(n)
-        # only the enumerated parameters enter M; the affine ones sit at lo in every corner
-        lower_terms = m_terms[enum][:, rows, cols]  # (p_e, n(n+1)/2)
-        packed = m0[rows, cols][None, :] + corners[:, enum] @ lower_terms  # (E, n(n+1)/2)
-        index = {(a, b): k for k, (a, b) in enumerate(zip(rows, cols, strict=True))}
-        lower, _, inv_diag = ldl_factor(
-            [[packed[:, index[a, b]] for b in range(a + 1)] for a in range(n)]
+    affine_joints: tuple[int, ...] | None = None
+    reach: tuple[int, ...] | None = None
+
+    def coupled_step(self, states, u, weights, onehots, nominal, lo, hi, kp, kd, dt):
+        return linear_search.coupled_window_step(
+            self.terms,
+            self.enumerated,
+            self.affine,
+            self.affine_joints,
+            self.reach,
+            states,
+            u,
+            weights,
+            onehots,
+            nominal,
+            lo,
+            hi,
+            kp,
+            kd,
+            dt,
         )
-        rhs = [jnp.broadcast_to(onehot[a], packed.shape[:1]) for a in range(n)]
-        row = jnp.stack(ldl_solve(lower, inv_diag, rhs), axis=-1)  # (E, n): M^-1 e_i
-        bias = (h0 + consts["lo"][affine] @ h_terms[affine])[None, :] + corners[:, enum] @ h_terms[
-            enum
-        ]
-        base = weight * (jnp.sum(row * (tau[None, :] - bias), axis=-1) - jnp.dot(onehot, v))
-        coef = -weight * (row @ h_terms[affine].T)  # (E, a)
-        span = coef * (consts["hi"][affine] - consts["lo"][affine])[None, :]
-        e, a_bits = structured_pick(base, span, offset, self.enumerated, self.affine)
-        return self._assemble(corners, e, a_bits, consts)
 
 
 def resolve(model, search):
@@ -277,7 +284,13 @@ def resolve(model, search):
     if isinstance(structure, PlanarPointMass):
         return planar_search.SEARCH
     if isinstance(structure, LinearDynamics):
-        return LinearChooser(model.n_params, structure.affine, structure.terms)
+        return LinearChooser(
+            model.n_params,
+            structure.affine,
+            structure.terms,
+            structure.affine_joints,
+            structure.reach,
+        )
     if isinstance(structure, AffineBias):
         return StructuredChooser(model.n_params, structure.affine)
     return enumerate_corners

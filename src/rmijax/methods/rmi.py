@@ -27,7 +27,7 @@ import numpy as np
 from rmijax import _checks
 from rmijax.control import closed_loop_step, computed_torque, servo_command
 from rmijax.methods.base import Bounds, DivergedError, ProblemTooLargeError, check_types
-from rmijax.methods.choosers import StructuredChooser, enumerate_corners, resolve
+from rmijax.methods.choosers import LinearChooser, StructuredChooser, enumerate_corners, resolve
 from rmijax.methods.planar_search import FactoredSearch
 from rmijax.robots.box import UncertainRobot, corner_tensor, uncertain_indices
 from rmijax.robots.check import check_model
@@ -157,6 +157,14 @@ def _enumerated_corners(params):
     return params.n_corners if uncertain is None else 2 ** len(uncertain)
 
 
+def _evaluated_corners(params, search):
+    """Corners the search evaluates per track step (for messages)."""
+    found = resolve(params.model, search)
+    if isinstance(found, StructuredChooser):
+        return found.n_evaluated
+    return _enumerated_corners(params)
+
+
 EVALUATIONS_PER_SECOND = 1e8
 """Dynamics evaluations per second, weighted by ``n^2``, that the time estimate assumes:
 a fast machine (a 2-core CPU measured about 1e7), so a refusal means hopeless, not slow."""
@@ -168,20 +176,26 @@ def estimate_seconds(params, n_steps, *, mode="coupled", window=100, search="aut
     Counted for the searches that evaluate corners: enumeration (``2^u`` corners
     of the ``u`` uncertain parameters) and the structured choosers
     (``2^(p-a) (1 + a)`` values); ``(T+1) min(N, T) 4n`` track steps each, an
-    evaluation costing ``n^2`` at :data:`EVALUATIONS_PER_SECOND`. The planar
+    evaluation costing ``n^2`` at :data:`EVALUATIONS_PER_SECOND`. The contracted
+    corners of :class:`~rmijax.methods.choosers.LinearChooser` cost 1 each. The planar
     arm's factored search and the corner search scale polynomially: None.
     """
     del mode
     found = resolve(params.model, search)
+    n = params.n_joints
+    weight = n * n
     if found is enumerate_corners:
         per_step = _enumerated_corners(params)
+    elif isinstance(found, LinearChooser):
+        # contracted corners: a handful of fused operations each, not a dynamics evaluation
+        # (measured on the Panda, p = 22: about 1.5e7 corner-steps/s on the 2-core CPU)
+        per_step, weight = found.n_evaluated, 1
     elif isinstance(found, StructuredChooser):
         per_step = found.n_evaluated * (1 + len(found.affine))
     else:
         return None
-    n = params.n_joints
     evaluations = (n_steps + 1) * min(int(window), n_steps) * 4 * n * per_step
-    return evaluations * n * n / EVALUATIONS_PER_SECOND
+    return evaluations * weight / EVALUATIONS_PER_SECOND
 
 
 _WINDOW_DATA_BYTES = 64 * 2**10
@@ -367,7 +381,7 @@ def window_extremes(u_win, xn_win, qddn_win, active, x0, consts, *, model, mode,
     sigma = sign[None, :] * consts["weights"][:, joint, sensor]  # (N, 4n)
     box = (nominal, consts["lo"], consts["hi"], kp, kd, dt)
 
-    if mode == "coupled" and isinstance(found, FactoredSearch):
+    if mode == "coupled" and hasattr(found, "coupled_step"):
 
         def step(states, inputs):
             u, sigma_s, on = inputs
@@ -634,7 +648,7 @@ def _rmi_from_starts(
     seconds = estimate_seconds(params, traj.n_steps, mode=mode, window=window, search=search)
     if seconds is not None:
         _checks.check_time(
-            f"RMI over {_enumerated_corners(params)} corners x {4 * traj.n_joints} tracks x "
+            f"RMI over {_evaluated_corners(params, search)} corners x {4 * traj.n_joints} tracks x "
             f"{n_end} end steps x {window}-step windows",
             seconds,
             progress=progress,

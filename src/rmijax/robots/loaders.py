@@ -850,7 +850,12 @@ def load_robot(
         forward_dynamics=dynamics.forward_dynamics,
         name=chain.name,
         param_names=dynamics.param_names,
-        structure=LinearDynamics(affine=dynamics.affine, terms=dynamics.terms),
+        structure=LinearDynamics(
+            affine=dynamics.affine,
+            terms=dynamics.terms,
+            affine_joints=dynamics.affine_joints,
+            reach=dynamics.reach,
+        ),
     )
     return uncertain_robot(
         model,

@@ -140,6 +140,9 @@ class SpatialDynamics(NamedTuple):
             ``M = M0 + th @ M_b`` and ``h = h0 + th @ h_b``.
         param_names: (p,) labels of ``th``.
         affine: indices of the parameters that enter ``h`` only (friction).
+        affine_joints: for each of them the joint whose bias it alone enters.
+        reach: per parameter the last joint its terms touch (``M_b``, ``h_b`` vanish
+            beyond it): a body's index, the payload's body, a friction's joint.
     """
 
     mass_matrix: Callable
@@ -148,6 +151,8 @@ class SpatialDynamics(NamedTuple):
     terms: Callable
     param_names: tuple[str, ...]
     affine: tuple[int, ...]
+    affine_joints: tuple[int, ...]
+    reach: tuple[int, ...]
 
 
 def smooth_sign(qd):
@@ -364,4 +369,8 @@ def spatial_dynamics(
     for function in (mass_matrix, bias, forward_dynamics, terms):
         function.__qualname__ = f"{chain.name}.{function.__name__}"
         function.__doc__ = (function.__doc__ or "") + f"\n\n    Parameters (p={n_params}): {names}"
-    return SpatialDynamics(mass_matrix, bias, forward_dynamics, terms, tuple(names), affine)
+    affine_joints = tuple(j for _ in friction for j in range(n))
+    last_joint = tuple(int(b) for b in attach) + affine_joints
+    return SpatialDynamics(
+        mass_matrix, bias, forward_dynamics, terms, tuple(names), affine, affine_joints, last_joint
+    )

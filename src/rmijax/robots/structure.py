@@ -66,13 +66,38 @@ class LinearDynamics:
         affine: indices of the parameters with ``M_b = 0`` (they enter ``h``
             only and are chosen by sign).
         terms: ``(q (n,), qd (n,)) -> (M0 (n, n), M_b (p, n, n), h0 (n,), h_b (p, n))``.
+        affine_joints: optional, one joint per affine parameter: ``h_b`` is zero
+            but for that joint's entry (friction acts on its own joint). The
+            search then scores each affine parameter with one product instead of
+            an ``n``-term dot product. None: ``h_b`` may be dense.
+        reach: optional, per parameter (all ``p``) the last joint its terms
+            touch: ``M_b`` is zero outside rows and columns ``0..reach_b`` and
+            ``h_b`` outside entries ``0..reach_b`` (a serial chain: a body's
+            inertia loads the joints inboard of it). The search then factors
+            ``M`` from the tip, sharing each joint's elimination among the corners
+            that agree on the parameters reaching it. None: no such promise.
     """
 
     affine: tuple[int, ...]
     terms: Callable
+    affine_joints: tuple[int, ...] | None = None
+    reach: tuple[int, ...] | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "affine", _indices("affine", self.affine))
+        if self.affine_joints is not None:
+            joints = tuple(int(k) for k in self.affine_joints)
+            if len(joints) != len(self.affine) or any(k < 0 for k in joints):
+                raise ValueError(
+                    f"affine_joints must give one joint index >= 0 per affine parameter "
+                    f"({len(self.affine)}), got {self.affine_joints!r}"
+                )
+            object.__setattr__(self, "affine_joints", joints)
+        if self.reach is not None:
+            reach = tuple(int(k) for k in self.reach)
+            if any(k < 0 for k in reach):
+                raise ValueError(f"reach must give joint indices >= 0, got {self.reach!r}")
+            object.__setattr__(self, "reach", reach)
 
 
 @dataclasses.dataclass(frozen=True)
