@@ -66,8 +66,8 @@ def run_meta(script, argv=None, *, dtype):
 
     ``command`` is the exact command line that wrote the file (run from the repository
     root); ``commit`` the git HEAD of the code that ran, with ``+dirty`` when the work
-    tree had uncommitted changes to tracked files; ``load_avg`` the machine's load when
-    the run ended.
+    tree had uncommitted changes to tracked files (listed in ``uncommitted_changes``);
+    ``load_avg`` the machine's load when the run ended.
     """
     import jax
 
@@ -83,13 +83,15 @@ def run_meta(script, argv=None, *, dtype):
             capture_output=True,
             text=True,
             check=True,
-        ).stdout.strip()
-        commit += "+dirty" if dirty else ""
+        ).stdout
+        changed = [line[3:] for line in dirty.splitlines() if line.strip()]
+        commit += "+dirty" if changed else ""
     except (OSError, subprocess.CalledProcessError):
-        commit = "unknown"
+        commit, changed = "unknown", []
     return {
         "command": " ".join(["python", script] + [shlex.quote(a) for a in argv]),
         "commit": commit,
+        **({"uncommitted_changes": changed} if changed else {}),
         "date": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "device": device(),
         "machine": _machine(),
