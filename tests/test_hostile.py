@@ -727,3 +727,14 @@ def test_cli_in_a_subprocess_prints_no_traceback(tmp_path):
     )
     assert run.returncode == 2
     assert run.stderr.count("\n") == 1 and "is an existing file" in run.stderr
+
+
+def test_numpy_and_jax_scalars_are_numbers_not_refused(pend):
+    params, traj = pend
+    assert rmijax.preset_arm(np.int64(2)).n_joints == 2
+    assert rmijax.trajectory("sine", duration=jnp.float32(0.2), dt=np.float64(0.01)).n_steps == 20
+    bounds = rmijax.rmi(traj, params, window=np.int32(5), chunk_size=jnp.int32(4))
+    found = rmijax.detect(np.asarray(bounds.nominal), bounds, onset=np.float32(0.1))
+    assert found.false_alarms == 0
+    with pytest.raises(ValueError, match=r"^window must be an integer"):
+        rmijax.rmi(traj, params, window=np.array(True))
