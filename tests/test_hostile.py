@@ -339,8 +339,13 @@ def _run_monitor(params, traj, update, window, bad_tick):
 
 def test_monitor_refuses_nan_desired_outside_jit(arm):
     params, traj = arm
-    with pytest.raises(ValueError, match=r"^desired q_d contains NaN/inf at tick 3"):
-        _run_monitor(params, traj, lambda mon: mon.update, 5, 3)
+    mon = rmijax.monitor(params, window=5)
+    state = mon.init(traj.q_d[0], traj.qd_d[0])
+    for name in ("q_d", "qd_d", "qdd_d"):
+        desired = {"q_d": traj.q_d[0], "qd_d": traj.qd_d[0], "qdd_d": traj.qdd_d[0]}
+        desired[name] = desired[name].at[1].set(jnp.inf)
+        with pytest.raises(ValueError, match=rf"^desired {name} contains NaN/inf at tick 0"):
+            mon.update(state, tuple(desired.values()), traj.x_n[0])
 
 
 def test_monitor_flags_nan_desired_inside_jit_and_recovers(arm):
@@ -727,3 +732,14 @@ def test_cli_in_a_subprocess_prints_no_traceback(tmp_path):
     )
     assert run.returncode == 2
     assert run.stderr.count("\n") == 1 and "is an existing file" in run.stderr
+
+
+def test_numpy_and_jax_scalars_are_numbers_not_refused(pend):
+    params, traj = pend
+    assert rmijax.preset_arm(np.int64(2)).n_joints == 2
+    assert rmijax.trajectory("sine", duration=jnp.float32(0.2), dt=np.float64(0.01)).n_steps == 20
+    bounds = rmijax.rmi(traj, params, window=np.int32(5), chunk_size=jnp.int32(4))
+    found = rmijax.detect(np.asarray(bounds.nominal), bounds, onset=np.float32(0.1))
+    assert found.false_alarms == 0
+    with pytest.raises(ValueError, match=r"^window must be an integer"):
+        rmijax.rmi(traj, params, window=np.array(True))

@@ -212,13 +212,27 @@ def integer(name, value, *, minimum=None, unit="") -> int:
     A float such as ``2.0`` or ``2.7`` and a string such as ``"3"`` are refused,
     not coerced: a count that is not an integer is a mistake somewhere upstream.
     """
-    ok = not isinstance(value, bool) and isinstance(value, (int, np.integer))
+    ok = _scalar_of(value, (int, np.integer), jnp.integer)
     if not ok or (minimum is not None and value < minimum):
         what = f"an integer number of {unit}" if unit else "an integer"
         if minimum is not None:
             what += f" >= {minimum}"
         raise ValueError(f"{name} must be {what}, got {value!r}")
     return int(value)
+
+
+def _scalar_of(value, types, dtypes) -> bool:
+    """A concrete real scalar of the given Python/NumPy ``types``, or a concrete 0-d array of
+    one of ``dtypes`` (a NumPy or JAX scalar array); bools never."""
+    if isinstance(value, (bool, np.bool_)):
+        return False
+    if isinstance(value, types):
+        return True
+    dtype = getattr(value, "dtype", None)
+    if dtype is None or not is_concrete(value) or np.ndim(value) != 0:
+        return False
+    kinds = dtypes if isinstance(dtypes, tuple) else (dtypes,)
+    return any(jnp.issubdtype(dtype, kind) for kind in kinds)
 
 
 def real(name, value, *, minimum=None, positive=False, unit="") -> float:
@@ -228,8 +242,8 @@ def real(name, value, *, minimum=None, positive=False, unit="") -> float:
         minimum: refuse values below it; positive: refuse values <= 0.
         unit: named in the message (``"s"``, ``"bytes"``).
     """
-    ok = not isinstance(value, bool) and isinstance(value, (int, float, np.integer, np.floating))
-    if ok and np.ndim(value) == 0:
+    ok = _scalar_of(value, (int, float, np.integer, np.floating), (jnp.integer, jnp.floating))
+    if ok:
         number = float(value)
         ok = np.isfinite(number)
         ok = ok and (minimum is None or number >= minimum) and (not positive or number > 0)
@@ -254,7 +268,7 @@ def boolean(name, value) -> bool:
 
 def memory_budget(value) -> int:
     """A memory budget in bytes: a positive finite number (``4 * 2**30`` is 4 GiB)."""
-    ok = not isinstance(value, bool) and isinstance(value, (int, float, np.integer, np.floating))
+    ok = _scalar_of(value, (int, float, np.integer, np.floating), (jnp.integer, jnp.floating))
     if not ok or not np.isfinite(value) or value < 1:
         raise ValueError(
             f"memory_budget must be a positive number of bytes (e.g. 4 * 2**30 for 4 GiB), "
