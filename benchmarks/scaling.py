@@ -1,8 +1,12 @@
 """How exact RMI scales with the number of links: online latency, offline throughput, memory.
 
 The engine under test is ``rmijax.rmi`` with its default ``search="auto"`` (for the
-planar arm an exact search over the 2^n mass corners, SPEC sections 4-5 unchanged).
-For each arm size n (``preset_arm(n)``, K = 4^n corners), mode and dtype:
+planar arm an exact search over the 2^n mass corners, for real arms the
+``LinearDynamics`` search of ``rmijax.methods.linear_search``; SPEC sections 4-5
+unchanged). For each arm size n (``preset_arm(n)``, K = 4^n corners) or shipped real
+arm (``--robot``: ``load_robot(name, mass=0.1, payload=(0, 1) kg, viscous and Coulomb
+friction (0, 0.5))``, K = 2^p corners, p = 3n + 1, on a pick-and-place move
+home -> home + 0.3 rad -> home, 1.5 s per segment), mode and dtype:
 - compile time of the online step (first call minus a timed call);
 - online per-step latency p50/p99: one jitted call returning all bounds of one end
   step (all 4n tracks, max and min, full window), after warm-up, block_until_ready
@@ -18,6 +22,7 @@ For each arm size n (``preset_arm(n)``, K = 4^n corners), mode and dtype:
   machine's peak (``--peak-gflops``), and XLA's working set of one end step.
 
 Run: python benchmarks/scaling.py --links 6     (see --help)
+     python benchmarks/scaling.py --robot panda iiwa14 ur5e --mode coupled
 """
 
 from __future__ import annotations
@@ -41,8 +46,9 @@ from _common import (  # noqa: E402
 )
 
 COLUMNS = [
+    ("arm", "arm", "{:>7s}"),
     ("n", "n", "{:>2d}"),
-    ("K", "K", "{:>6d}"),
+    ("K", "K", "{:>7d}"),
     ("mode", "mode", "{:>9s}"),
     ("dtype", "dtype", "{:>7s}"),
     ("compile_s", "compile s", "{:>9.2f}"),
@@ -64,6 +70,56 @@ COLUMNS = [
 
 def _paths(n):
     return ["slow_sine"] + ["sine"] * (n - 1)
+
+
+ROBOT_HOMES = {
+    "panda": [0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785],
+    "iiwa14": [0.0, 0.5, 0.0, -1.2, 0.0, 0.8, 0.0],
+    "ur5e": [0.0, -1.571, 1.571, -1.571, -1.571, 0.0],
+}
+"""Joint-space home poses of the shipped arms (rad) for the ``--robot`` move."""
+
+
+class Problem:
+    """One row's arm: ``params``, the timed trajectory and ``offline(count)``, a
+    trajectory of ``count`` end steps."""
+
+    def __init__(self, arm, n, corners, params, traj, offline):
+        self.arm, self.n, self.corners = arm, n, corners
+        self.params, self.traj, self.offline = params, traj, offline
+
+
+def planar_problem(n, dtype):
+    import rmijax
+
+    params = rmijax.preset_arm(n, dtype=dtype)
+    traj = rmijax.trajectory(_paths(n), duration=4.0, dtype=dtype)
+
+    def offline(count):
+        return rmijax.trajectory(_paths(n), duration=(count - 1) * 0.01, dtype=dtype)
+
+    return Problem("planar", n, 4**n, params, traj, offline)
+
+
+def robot_problem(name, dtype):
+    import numpy as np
+
+    import rmijax
+    from rmijax.robots.loaders import load_robot
+
+    friction = dict(viscous=(0.0, 0.5), coulomb=(0.0, 0.5))
+    params = load_robot(name, mass=0.1, payload=(0.0, 1.0), friction=friction, dtype=dtype)
+    home = np.asarray(ROBOT_HOMES[name])
+
+    def move(segment_time):
+        return rmijax.waypoint_trajectory(
+            [home, home + 0.3, home], segment_time=segment_time, dt=0.01, dtype=dtype
+        )
+
+    def offline(count):
+        return move(max(0.01, round((count - 1) / 2) * 0.01))
+
+    return Problem(name, params.n_joints, 2**params.n_params, params, move(1.5), offline)
 
 
 def step_flops(params, traj, mode, window, search="auto"):
@@ -89,18 +145,18 @@ def working_set_mb(step, t):
     return step.lower(t).compile().memory_analysis().temp_size_in_bytes / 2**20
 
 
-def measure(n, mode, dtype_name, args):
+def measure(problem, mode, dtype_name, args):
     import jax
     import jax.numpy as jnp
 
     import rmijax
 
-    dtype = jnp.float64 if dtype_name == "float64" else jnp.float32
-    params = rmijax.preset_arm(n, dtype=dtype)
-    traj = rmijax.trajectory(_paths(n), duration=4.0, dtype=dtype)
+    n, params, traj = problem.n, problem.params, problem.traj
     step = jax.jit(lambda t: rmijax.rmi_step(traj, params, t, mode=mode, window=args.window))
-    end_steps = [jnp.asarray(args.window + 1 + i % 200) for i in range(args.calls)]
-    print(f"n={n} {mode} {dtype_name}: timing the online step ...", file=sys.stderr, flush=True)
+    last = traj.n_steps - args.window - 1
+    end_steps = [jnp.asarray(args.window + 1 + i % min(200, last)) for i in range(args.calls)]
+    label = f"{problem.arm} n={n}"
+    print(f"{label} {mode} {dtype_name}: timing the online step ...", file=sys.stderr, flush=True)
     t0 = time.perf_counter()
     jax.block_until_ready(step(end_steps[0]))
     first = time.perf_counter() - t0
@@ -112,7 +168,8 @@ def measure(n, mode, dtype_name, args):
     # Offline: a whole 15 s run if it fits the time allowance, else a stated subset.
     # Every end step runs a full-length (masked) window, so any subset is representative.
     count = int(min(1501, max(2, args.offline_seconds / max(timing["p50_s"], 1e-9))))
-    offline_traj = rmijax.trajectory(_paths(n), duration=(count - 1) * 0.01, dtype=dtype)
+    offline_traj = problem.offline(count)
+    count = offline_traj.n_steps + 1
     bounds = rmijax.rmi(offline_traj, params, mode=mode, window=args.window)
     jax.block_until_ready(bounds.upper)  # compile and a first run
     t0 = time.perf_counter()
@@ -121,8 +178,9 @@ def measure(n, mode, dtype_name, args):
     flops = step_flops(params, traj, mode, args.window)
     gflops = flops / timing["p50_s"] / 1e9
     record = {
+        "arm": problem.arm,
         "n": n,
-        "K": 4**n,
+        "K": problem.corners,
         "mode": mode,
         "dtype": dtype_name,
         "window": args.window,
@@ -141,9 +199,10 @@ def measure(n, mode, dtype_name, args):
         "enumerate_speedup": "-",
         "numpy_speedup": "-",
     }
-    if n in args.enumerate_links:
+    planar = problem.arm == "planar"
+    if planar and n in args.enumerate_links:
         record.update(enumerate_comparison(params, traj, mode, args, timing["p50_s"]))
-    if n in args.numpy_links and dtype_name == "float64":
+    if planar and n in args.numpy_links and dtype_name == "float64":
         record.update(numpy_comparison(n, mode, args))
     return record
 
@@ -213,6 +272,9 @@ def plot(records, path, device_name):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    records = [r for r in records if r.get("arm", "planar") == "planar"]
+    if not records:
+        return
     fig, ax = plt.subplots(figsize=(7.5, 4.8))
     groups = sorted({(r["mode"], r["dtype"]) for r in records})
     colors = {"coupled": "C0", "per_joint": "C1"}
@@ -259,7 +321,15 @@ def main(argv=None):
         type=int,
         nargs="+",
         default=[1, 2, 3, 4, 5, 6],
-        help="arm sizes, e.g. --links 6 or --links 1 2 3 8",
+        help="arm sizes, e.g. --links 6 or --links 1 2 3 8 (none with --robot only)",
+    )
+    parser.add_argument(
+        "--robot",
+        nargs="*",
+        default=[],
+        choices=sorted(ROBOT_HOMES),
+        help="shipped real arms, e.g. --robot panda iiwa14 ur5e (mass scales, payload and "
+        "friction uncertain; K = 2^(3n+1)); with --robot alone no planar sizes run",
     )
     parser.add_argument("--mode", choices=["coupled", "per_joint", "both"], default="both")
     parser.add_argument("--dtype", choices=["float32", "float64", "both"], default="float64")
@@ -318,11 +388,16 @@ def main(argv=None):
         metavar="PATH",
         help="measure nothing: print (and --plot) the results of an earlier --json",
     )
+    links_given = any(a == "--links" or a.startswith("--links=") for a in (argv or sys.argv[1:]))
     args = parser.parse_args(argv)
+    if args.robot and not links_given:
+        args.links = []
     if any(n < 1 for n in args.links):
         parser.error("--links must be >= 1")
     if args.from_json:
         records, meta = read_json(args.from_json)
+        for rec in records:
+            rec.setdefault("arm", "planar")
         print(table(records, COLUMNS))
         if args.markdown:
             print(markdown_table(records, COLUMNS))
@@ -336,11 +411,16 @@ def main(argv=None):
     dtypes = ["float64", "float32"] if args.dtype == "both" else [args.dtype]
     if "float64" in dtypes:
         jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp
+
+    makers = [lambda dt, n=n: planar_problem(n, dt) for n in args.links]
+    makers += [lambda dt, name=name: robot_problem(name, dt) for name in args.robot]
     records = []
-    for n in args.links:
+    for make in makers:
         for mode in modes:
             for dtype in dtypes:
-                records.append(measure(n, mode, dtype, args))
+                problem = make(jnp.float64 if dtype == "float64" else jnp.float32)
+                records.append(measure(problem, mode, dtype, args))
                 lines = table(records, COLUMNS).splitlines()
                 print("\n".join(lines if len(records) == 1 else lines[-1:]), flush=True)
     dtype = "float64" if dtypes == ["float64"] else "float32" if dtypes == ["float32"] else "both"

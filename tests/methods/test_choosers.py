@@ -6,6 +6,7 @@ tie rule included, while evaluating ``2^(p - a)`` corners instead of ``2^p``.
 """
 
 import collections
+import dataclasses
 
 import jax
 import jax.numpy as jnp
@@ -22,6 +23,7 @@ from rmijax.methods.choosers import (
     structured_pick,
 )
 from rmijax.methods.planar_search import SEARCH
+from rmijax.robots.loaders import load_robot
 from rmijax.robots.planar import planar_bias, planar_mass_matrix
 
 LENGTHS = (1.5, 1.0)
@@ -165,3 +167,65 @@ def test_structured_pick_equals_pick_corner_on_random_scores(rng):
         for j, b in enumerate(affine):
             bits[b] = int(a_bits[j])
         assert sum(bit << b for b, bit in enumerate(bits)) == want, trial
+
+
+# A small spatial arm (base yaw, then two pitch joints off a rolled frame, inertias with
+# products), the real-arm path at a size where all 2^10 corners can be enumerated.
+ARM3_URDF = """<robot name="arm3">
+  <link name="base"/>
+  <link name="l1"><inertial><origin xyz="0 0.02 0.15"/><mass value="3.0"/>
+    <inertia ixx="0.02" iyy="0.025" izz="0.01" ixy="0.001" ixz="0" iyz="0.002"/></inertial></link>
+  <link name="l2"><inertial><origin xyz="0.2 0 0.01"/><mass value="2.0"/>
+    <inertia ixx="0.004" iyy="0.03" izz="0.03" ixy="0" ixz="0.001" iyz="0"/></inertial></link>
+  <link name="l3"><inertial><origin xyz="0.15 0.01 0"/><mass value="1.0"/>
+    <inertia ixx="0.002" iyy="0.01" izz="0.01" ixy="0" ixz="0" iyz="0"/></inertial></link>
+  <joint name="j1" type="revolute"><parent link="base"/><child link="l1"/>
+    <origin xyz="0 0 0.1"/><axis xyz="0 0 1"/>
+    <limit lower="-3" upper="3" effort="100" velocity="5"/></joint>
+  <joint name="j2" type="revolute"><parent link="l1"/><child link="l2"/>
+    <origin xyz="0 0 0.3" rpy="0.1 0 0"/><axis xyz="0 1 0"/>
+    <limit lower="-3" upper="3" effort="100" velocity="5"/></joint>
+  <joint name="j3" type="revolute"><parent link="l2"/><child link="l3"/>
+    <origin xyz="0.4 0 0"/><axis xyz="0 1 0"/>
+    <limit lower="-3" upper="3" effort="100" velocity="5"/></joint>
+</robot>"""
+
+
+@pytest.fixture(scope="module")
+def arm3_case(tmp_path_factory):
+    """The arm with a box of p = 10 (3 mass scales, payload, 6 friction), a rest-to-rest
+    move and its bounds by enumeration of all 2^10 corners."""
+    path = tmp_path_factory.mktemp("arm3") / "arm3.urdf"
+    path.write_text(ARM3_URDF)
+    friction = dict(viscous=(0.0, 0.5), coulomb=(0.0, 0.5))
+    params = load_robot(path, mass=0.2, payload=(0.0, 1.0), friction=friction)
+    home = np.array([0.1, -0.5, 1.0])
+    traj = rmijax.waypoint_trajectory([home, home + 0.4, home], segment_time=0.25, dt=0.01)
+    return params, traj, rmijax.rmi(traj, params, window=12, search="enumerate")
+
+
+@pytest.mark.parametrize("declared", ["chain", "dense", "dense_bias"])
+def test_real_arm_search_equals_enumeration(declared, arm3_case):
+    """load_robot's LinearDynamics search equals enumeration in coupled mode, windows
+    starting at rest and zero costate weights at the last step included (exact ties),
+    also when the model declares less (no ``reach``, no ``affine_joints``)."""
+    params, traj, enumerated = arm3_case
+    structure = params.model.structure
+    assert structure.reach == (0, 1, 2, 2, 0, 1, 2, 0, 1, 2)
+    if declared != "chain":  # the searches for models that promise less
+        keep = dict(reach=None) if declared == "dense" else dict(reach=None, affine_joints=None)
+        model = dataclasses.replace(params.model, structure=dataclasses.replace(structure, **keep))
+        params = rmijax.uncertain_robot(model, params.nominal, params.lo, params.hi)
+    structured = rmijax.rmi(traj, params, window=12)
+    np.testing.assert_allclose(structured.lower, enumerated.lower, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(structured.upper, enumerated.upper, rtol=0, atol=1e-10)
+    assert float(jnp.min(structured.width)) >= 0 and float(jnp.max(structured.width)) > 1e-4
+
+
+def test_divide_free_reciprocal_is_within_a_few_ulps(rng):
+    """The search's pivots use a Newton reciprocal (no divide, so XLA keeps one loop)."""
+    from rmijax._linalg import reciprocal
+
+    x = np.concatenate([np.exp(rng.uniform(-300, 300, 20000)), np.linspace(0.5, 2.0, 1001)])
+    x = np.concatenate([x, -x])
+    np.testing.assert_allclose(np.asarray(reciprocal(jnp.asarray(x))) * x, 1.0, rtol=0, atol=5e-16)

@@ -247,6 +247,13 @@ def test_terms_reassemble_mass_matrix_and_bias(name, tmp_path, rng):
         _relative(np.asarray(bias0 + jnp.einsum("sb,sbi->si", th, bias_b)), np.asarray(bias))
         < 1e-12
     )
+    # the declarations the corner search relies on (rmijax.methods.linear_search)
+    beyond = np.arange(n)[None, :] > np.asarray(dynamics.reach)[:, None]  # (p, n)
+    np.testing.assert_array_equal(np.where(beyond[None, :, :, None], mass_b, 0.0), 0.0)
+    np.testing.assert_array_equal(np.where(beyond[None, :, None, :], mass_b, 0.0), 0.0)
+    np.testing.assert_array_equal(np.where(beyond[None], bias_b, 0.0), 0.0)
+    for b, joint in zip(dynamics.affine, dynamics.affine_joints, strict=True):
+        np.testing.assert_array_equal(np.delete(np.asarray(bias_b[:, b]), joint, axis=1), 0.0)
 
 
 @pytest.mark.parametrize("name", SHIPPED)
