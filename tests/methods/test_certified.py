@@ -14,6 +14,7 @@ import pytest
 import rmijax
 from rmijax.methods.certificate_check import check_certificate
 from rmijax.methods.certified import certified_bounds
+from rmijax.methods.dispatch import options_of
 from rmijax.methods.linearized import window_output
 
 DURATION = 1.0
@@ -173,12 +174,12 @@ def test_dispatcher_and_refusals(pendulum):
     traj, params, bounds, _ = pendulum
     via = rmijax.bounds(traj, params, method="certified", splits=2)
     np.testing.assert_array_equal(via.upper, bounds.upper)
-    assert "splits" in rmijax.methods.options_of("certified")
+    assert "splits" in options_of("certified")
     with pytest.raises(ValueError, match="window"):
         rmijax.bounds(traj, params, method="certified", window=10)
     with pytest.raises(ValueError, match="coupled"):
         certified_bounds(traj, params, mode="per_joint")
-    model = dataclasses.replace(params.model, forward_dynamics=None)
+    model = dataclasses.replace(params.model, structure=None)  # declares nothing
     other = rmijax.uncertain_robot(model, params.nominal, params.lo, params.hi)
     with pytest.raises(NotImplementedError, match="planar"):
         certified_bounds(traj, other)
