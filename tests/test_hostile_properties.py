@@ -13,6 +13,7 @@ import pytest
 
 hypothesis = pytest.importorskip("hypothesis")
 from hypothesis import (  # noqa: E402
+    example,
     given,
     settings,
     strategies as st,  # noqa: E402
@@ -20,8 +21,9 @@ from hypothesis import (  # noqa: E402
 
 import rmijax  # noqa: E402
 
-FAST = settings(max_examples=40, deadline=None)
-SLOW = settings(max_examples=12, deadline=None)
+# derandomize: the same examples on every run, so CI cannot pass or fail by chance
+FAST = settings(max_examples=40, deadline=None, derandomize=True)
+SLOW = settings(max_examples=12, deadline=None, derandomize=True)
 
 hostile_floats = st.one_of(
     st.floats(allow_nan=True, allow_infinity=True, width=64),
@@ -87,6 +89,7 @@ gain = st.one_of(
 
 @FAST
 @given(kp=gain, kd=gain, dt=st.one_of(hostile_floats, st.floats(1e-4, 0.5)))
+@example(kp=0.0, kd=179769314.0, dt=1e300)  # kd dt overflows: refused, not a LinAlgError
 def test_gains_and_step_give_a_stable_loop_or_are_refused(kp, kd, dt):
     n = 2
     samples = np.zeros((4, n))

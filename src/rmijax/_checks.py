@@ -144,8 +144,10 @@ def closed_loop_radius(kp, kd, dt):
     kd = np.atleast_1d(np.asarray(kd, dtype=np.float64))
     radii = []
     for kp_i, kd_i in zip(kp, kd, strict=True):
-        a = np.array([[1.0, dt], [-kp_i * dt, 1.0 - kd_i * dt]])
-        radii.append(np.max(np.abs(np.linalg.eigvals(a))))
+        with np.errstate(over="ignore", invalid="ignore"):
+            a = np.array([[1.0, dt], [-kp_i * dt, 1.0 - kd_i * dt]])
+        # an entry that overflows (huge gains times a huge step) is unstable, not an error
+        radii.append(np.max(np.abs(np.linalg.eigvals(a))) if np.all(np.isfinite(a)) else np.inf)
     return np.array(radii)
 
 
