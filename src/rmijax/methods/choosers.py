@@ -40,6 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from rmijax.methods import linear_search, planar_search
+from rmijax.methods._keys import tie_tolerance
 from rmijax.robots.structure import AffineBias, LinearDynamics, PlanarPointMass
 
 __all__ = [
@@ -49,12 +50,6 @@ __all__ = [
     "resolve",
     "structured_pick",
 ]
-
-
-def tie_tolerance(scale, offset):
-    """The contract's tie tolerance: ``eps^(2/3) * (max|score| + |offset|)``."""
-    rtol = jnp.finfo(scale.dtype).eps ** (2.0 / 3.0)
-    return rtol * (scale + jnp.abs(offset))
 
 
 def pick_corner(scores, offset):

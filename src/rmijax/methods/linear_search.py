@@ -53,24 +53,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from rmijax._linalg import ldl_factor, ldl_solve, reciprocal
+from rmijax.methods._keys import float_of_ordered, ordered_int, tie_tolerance
 
 __all__ = ["coupled_window_step"]
-
-
-def _ordered_int(x):
-    """An integer image of a float array that preserves its order (exactly)."""
-    itype = jnp.int64 if x.dtype == jnp.float64 else jnp.int32
-    bits = jax.lax.bitcast_convert_type(x, itype)
-    return jnp.where(bits < 0, bits ^ jnp.iinfo(itype).max, bits)
-
-
-def _float_of_ordered(k, dtype):
-    return jax.lax.bitcast_convert_type(jnp.where(k < 0, k ^ jnp.iinfo(k.dtype).max, k), dtype)
-
-
-def _tie_tolerance(scale, offset):
-    rtol = jnp.finfo(scale.dtype).eps ** (2.0 / 3.0)
-    return rtol * (scale + jnp.abs(offset))
 
 
 def _lead(a, ndim):
@@ -349,7 +334,7 @@ def coupled_window_step(
     best, worst = kept[n], kept[n + 1]
 
     # pass 1: the extremes over every corner (one integer max-reduction)
-    high, low = _ordered_int(best), _ordered_int(-worst)
+    high, low = ordered_int(best), ordered_int(-worst)
     smallest = jnp.array(jnp.iinfo(high.dtype).min, high.dtype)
     top_i, bottom_i = jax.lax.reduce(
         (high, low),
@@ -357,8 +342,8 @@ def coupled_window_step(
         lambda a, b: (jnp.maximum(a[0], b[0]), jnp.maximum(a[1], b[1])),
         corner_axes,
     )
-    top, bottom = _float_of_ordered(top_i, dtype), -_float_of_ordered(bottom_i, dtype)
-    threshold = top - _tie_tolerance(jnp.maximum(jnp.abs(top), jnp.abs(bottom)), offset)
+    top, bottom = float_of_ordered(top_i, dtype), -float_of_ordered(bottom_i, dtype)
+    threshold = top - tie_tolerance(jnp.maximum(jnp.abs(top), jnp.abs(bottom)), offset)
 
     # pass 2: the lowest corner index within the threshold (one integer min-reduction)
     itype = jnp.int32 if n_params <= 30 else jnp.int64

@@ -49,6 +49,7 @@ import numpy as np
 
 from rmijax._linalg import ldl_factor, ldl_solve
 from rmijax.control import closed_loop_step
+from rmijax.methods._keys import float_of_ordered, ordered_int
 from rmijax.robots.model import GRAVITY
 from rmijax.robots.planar import (
     PlanarState,
@@ -87,17 +88,6 @@ def tie_tolerance(dtype) -> float:
 # --------------------------------------------------------------------------
 
 
-def _ordered_int(x):
-    """An integer image of a float array that preserves its order (exactly)."""
-    itype = jnp.int64 if x.dtype == jnp.float64 else jnp.int32
-    bits = jax.lax.bitcast_convert_type(x, itype)
-    return jnp.where(bits < 0, bits ^ jnp.iinfo(itype).max, bits)
-
-
-def _float_of_ordered(k, dtype):
-    return jax.lax.bitcast_convert_type(jnp.where(k < 0, k ^ jnp.iinfo(k.dtype).max, k), dtype)
-
-
 def _max_min_all(high, low):
     """``(max(high), min(low))`` over all entries, as one integer reduction.
 
@@ -107,7 +97,7 @@ def _max_min_all(high, low):
     producer instead, and one variadic reduction computes both extremes in one
     pass. Exact: it returns entries of ``high`` and ``low``.
     """
-    a, b = _ordered_int(high), _ordered_int(-low)
+    a, b = ordered_int(high), ordered_int(-low)
     smallest = jnp.array(jnp.iinfo(a.dtype).min, a.dtype)
     top, bottom = jax.lax.reduce(
         (a, b),
@@ -115,7 +105,7 @@ def _max_min_all(high, low):
         lambda x, y: (jnp.maximum(x[0], y[0]), jnp.maximum(x[1], y[1])),
         tuple(range(a.ndim)),
     )
-    return _float_of_ordered(top, high.dtype), -_float_of_ordered(bottom, low.dtype)
+    return float_of_ordered(top, high.dtype), -float_of_ordered(bottom, low.dtype)
 
 
 def _threshold(top, bottom, offset):
