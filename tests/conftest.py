@@ -40,3 +40,17 @@ def load_case(name):
     """A reference case from tests/data (copied from ../shared/cases)."""
     with np.load(DATA / f"{name}.npz") as case:
         return {key: case[key] for key in case.files}
+
+
+_MEASURED_SLOW = {
+    line.strip()
+    for line in (pathlib.Path(__file__).parent / "slow_tests.txt").read_text().splitlines()
+    if line.strip() and not line.startswith("#")
+}
+
+
+def pytest_collection_modifyitems(config, items):
+    """Mark the tests listed in ``slow_tests.txt`` (measured >= 6 s) as ``slow``."""
+    for item in items:
+        if item.nodeid in _MEASURED_SLOW:
+            item.add_marker(pytest.mark.slow)
