@@ -94,7 +94,8 @@ def _parser():
 
 
 def _real_arm(args) -> int:
-    """``rmijax --robot NAME``: validate every option first, then run the job."""
+    """``rmijax --robot NAME``: check the job's own options (the shared ones are checked by
+    :func:`_check_options` before), then run the job."""
     import pathlib
 
     from rmijax.methods.dispatch import METHODS
@@ -114,9 +115,6 @@ def _real_arm(args) -> int:
         return 2
     if not args.segment_time > 0:
         print("--segment-time must be a positive time in s", file=sys.stderr)
-        return 2
-    if args.persistence < 1:
-        print("--persistence must be at least 1 step", file=sys.stderr)
         return 2
     import jax
 
