@@ -5,8 +5,9 @@ a bias that returns NaN, or a ``forward_dynamics`` that disagrees with
 ``solve(M, tau - h)`` all give finite, plausible-looking bounds. So the public
 entry points (:func:`rmijax.rmi`, :func:`rmijax.rmi_step`, :func:`rmijax.bounds`,
 :func:`rmijax.monitor`, :func:`rmijax.simulate`) call :func:`check_model` once
-per call, outside ``jit``, at a few states and parameter sets; the result is
-cached by model, box and states, so repeated calls cost a dictionary look-up.
+per call, outside ``jit``, at a few states and parameter sets, evaluating the
+model with NumPy rather than compiling it; the result is cached by model, box
+and states, so repeated calls cost a dictionary look-up.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import jax
 import numpy as np
 
 from rmijax import _checks
+from rmijax.robots import _numpy_eval
 
 __all__ = ["ModelCheckError", "check_model"]
 
@@ -103,14 +105,26 @@ def _evaluator(model):
 
 
 def _evaluate(model, q, qd, th, accel):
+    """M, h and forward dynamics over the batch: NumPy first (no compilation), else XLA."""
+    n, batch = model.n_joints, q.shape[0]
+    expected = ((batch, n, n), (batch, n), (batch, n))
+    try:
+        with np.errstate(all="ignore"):  # NaN and inf are judged afterwards, by name
+            out = _numpy_eval.evaluate(_evaluator(model), q, qd, th, accel)
+        if tuple(o.shape for o in out) == expected:
+            return out
+    except Exception:  # anything the interpreter cannot do: XLA names the failure
+        pass
+    return _compiled(model, q, qd, th, accel, expected)
+
+
+def _compiled(model, q, qd, th, accel, expected):
     fn = jax.jit(_evaluator(model))
     try:
         lowered = fn.lower(q, qd, th, accel)
     except Exception:
         _shapes(model, q.dtype)  # names the function that failed, or its wrong shape
         raise
-    n, batch = model.n_joints, q.shape[0]
-    expected = ((batch, n, n), (batch, n), (batch, n))
     if tuple(o.shape for o in lowered.out_info) != expected:
         _shapes(model, q.dtype)
     try:
@@ -141,9 +155,12 @@ def check_model(params, traj=None, *, states: int = 4, corners: int = 16, seed: 
     - ``forward_dynamics`` (if given) equal to ``solve(M, tau - h)``.
 
     Runs outside ``jit`` only (on tracers it returns at once); cached by model,
-    box and states. Its cost is one small XLA compilation (about 0.5-1 s the
-    first time for a model). A model with ``trusted=True`` (the library's own,
-    held to the SPEC's oracles by the test suite) is not checked.
+    box and states. The model's functions are traced once and evaluated by
+    NumPy, primitive by primitive (``robots/_numpy_eval.py``), not compiled:
+    a trace and a few milliseconds (a compiled fallback, for what the
+    interpreter cannot run, costs one small XLA compilation). A model with
+    ``trusted=True`` (the library's own, held to the SPEC's oracles by the
+    test suite) is not checked.
 
     Args:
         params: the :class:`~rmijax.robots.box.UncertainRobot`.
