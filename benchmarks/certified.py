@@ -17,6 +17,11 @@ the paper's true parameters, every fault kind of the default suite on both
 joints at 3 s): latency, misses and false alarms of the ``certified``, ``rmi``
 and ``empirical`` bands, and the false alarms of the fault-free run.
 
+With ``--remainder``: how tight the remainder bound is on the tests' pendulum fixture
+(``sine``, 1 s, ``splits=2``): the largest true remainder ``|R_k|`` and input ``|xi_k|``
+over the corners and 200 draws as a share of the bounds ``r_k`` and ``w_k``, and how far
+samples leave the band when the remainder is halved or switched off.
+
 Examples::
 
     PYTHONPATH=src python3 benchmarks/certified.py --cases arm2_hold_sine --duration 15 \\
@@ -134,6 +139,72 @@ def run_case(name, duration, draws, every, splits):
     return row
 
 
+def run_remainder(duration=1.0, splits=2, draws=200):
+    """How tight the remainder bound is: the pendulum fixture of the tests (``sine``).
+
+    For each piece, the true remainder ``R_k(th) = x_k(th) - (x_c + S d + 1/2 Q[d, d])``
+    of the corners and ``draws`` uniform draws in it (run by ``simulate``), its input
+    ``xi_k = R_(k+1) - A R_k``, against the certificate's ``r_k`` and ``w_k``; and how far
+    the samples leave the band when the remainder is halved or switched off.
+    """
+    params = rmijax.paper_pendulum()
+    traj = rmijax.trajectory(["sine"], duration=duration)
+    bounds, cert = certified_bounds(traj, params, splits=splits)
+    samples = _samples(params, draws)
+    states = np.asarray(rmijax.simulate(traj, params, samples)[0])  # (S, T+1, n, 2)
+    kp, kd, dt = np.asarray(traj.kp), np.asarray(traj.kd), traj.dt
+    n = traj.n_joints
+    a = np.zeros((n, 2, 2))
+    a[:, 0, 0], a[:, 0, 1], a[:, 1, 0], a[:, 1, 1] = 1.0, dt, -kp * dt, 1.0 - kd * dt
+    reached_r = np.zeros(np.asarray(cert.remainder).shape)  # (P, T+1, n, 2)
+    reached_w = np.zeros(np.asarray(cert.injected).shape)  # (P, T, n, 2)
+    for piece in range(cert.n_pieces):
+        lo, hi = np.asarray(cert.lo)[piece], np.asarray(cert.hi)[piece]
+        inside = np.all((samples >= lo) & (samples <= hi), axis=1)
+        d = samples[inside] - np.asarray(cert.center)[piece]
+        poly = (
+            np.asarray(cert.state)[piece][None]
+            + np.einsum("tnsp,Sp->Stns", np.asarray(cert.sens)[piece], d)
+            + 0.5 * np.einsum("tnspq,Sp,Sq->Stns", np.asarray(cert.sens2)[piece], d, d)
+        )
+        remainder = states[inside] - poly
+        xi = remainder[:, 1:] - np.einsum("nij,Stnj->Stni", a, remainder[:, :-1])
+        reached_r[piece] = np.abs(remainder).max(0)
+        reached_w[piece] = np.abs(xi).max(0)
+    ratio_r = reached_r / np.maximum(np.asarray(cert.remainder), 1e-300)
+    ratio_w = reached_w / np.maximum(np.asarray(cert.injected), 1e-300)
+    k0 = int(round(0.5 / traj.dt))
+    share = np.asarray(cert.remainder).max(0)[k0:] / np.asarray(bounds.width)[k0:]
+    result = dict(case="pendulum_sine", duration=duration, splits=splits, samples=len(samples))
+    for sensor, label in enumerate(("encoder", "tachometer")):
+        w_part = ratio_w[:, :, :, sensor].max(axis=(0, 2))  # (T,) over pieces and joints
+        r_part = ratio_r[:, :, :, sensor].max(axis=(0, 2))
+        result[label] = dict(
+            input_reached_step0=round(float(w_part[0]), 4),
+            input_reached_steps8_96=[
+                round(float(w_part[8:97].min()), 5),
+                round(float(w_part[8:97].max()), 5),
+            ],
+            remainder_reached_steps8_96=[
+                round(float(r_part[8:97].min()), 5),
+                round(float(r_part[8:97].max()), 5),
+            ],
+            remainder_share_of_width_median=round(float(np.median(share[..., sensor])), 4),
+        )
+    for scale in (0.5, 0.0):
+        mutant, _ = certified_bounds(traj, params, splits=splits, remainder_scale=scale)
+        out = np.maximum(states - np.asarray(mutant.upper), np.asarray(mutant.lower) - states)
+        where = np.unravel_index(np.argmax(out), out.shape)
+        result[f"escape_scale_{scale}"] = dict(
+            excess=float(out.max()),
+            sample=[float(v) for v in samples[where[0]]],
+            step=int(where[1]),
+            sensor=("encoder", "tachometer")[int(where[3])],
+            steps_with_escape=int(np.sum(np.any(out > 1e-12, axis=(0, 2, 3)))),
+        )
+    return result
+
+
 FAULT_METHODS = ("certified", "rmi", "empirical")
 
 
@@ -247,7 +318,18 @@ def main(argv=None):
     parser.add_argument(
         "--faults", action="store_true", help="run the fault suite on the paper fault case"
     )
+    parser.add_argument(
+        "--remainder", action="store_true", help="measure how tight the remainder bound is"
+    )
     args = parser.parse_args(argv)
+    if args.remainder:
+        result = run_remainder()
+        print(json.dumps(result, indent=1))
+        if args.json:
+            record = dict(meta=run_meta("benchmarks/certified.py", dtype="float64"), **result)
+            with open(args.json, "w") as handle:
+                json.dump(record, handle, indent=1)
+        return result
     if args.faults:
         result = run_faults(args.duration)
         _print_faults(result)
