@@ -202,6 +202,17 @@ def run_remainder(duration=1.0, splits=2, draws=200):
             sensor=("encoder", "tachometer")[int(where[3])],
             steps_with_escape=int(np.sum(np.any(out > 1e-12, axis=(0, 2, 3)))),
         )
+    # the same mutation on the two-joint arm (hold / sine, 0.3 s, default 16 pieces)
+    arm = rmijax.paper_arm2()
+    arm_traj = rmijax.trajectory(["hold", "sine"], duration=0.3)
+    arm_samples = _samples(arm, draws)
+    arm_states = np.asarray(rmijax.simulate(arm_traj, arm, arm_samples)[0])
+    for scale in (1.0, 0.5):
+        band, _ = certified_bounds(arm_traj, arm, remainder_scale=scale)
+        out = np.maximum(arm_states - np.asarray(band.upper), np.asarray(band.lower) - arm_states)
+        result[f"arm2_hold_sine_0.3s_scale_{scale}"] = dict(
+            samples=len(arm_samples), worst_excess=float(out.max())
+        )
     return result
 
 
