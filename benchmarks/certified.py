@@ -1,18 +1,33 @@
 """Benchmark of the certified bands: time, tightness against the worst case, soundness counts.
 
-For each case: certification time (compile included: one call), then
+For each case:
 
+- time: one call with compile (``seconds``) and a second call (``seconds_warm``);
 - soundness: all ``2^p`` corners (``p <= 12``) and ``--draws`` uniform draws run by
   ``rmijax.simulate``, and the ``worst_case`` maximisers at the scored times; the
-  count of samples outside the band by more than 1e-12;
+  count of samples outside the band by more than 1e-12; an attack on the band
+  (projected gradient over ``th`` of the slack, with restarts) at the steps where
+  the samples came closest, its finds run over the whole horizon;
 - tightness: band width / worst-case range (``rmijax.worst_case_table``) at
   times every ``--every`` s after 0.5 s, median and p90 per sensor (and the
   minimum, which must not fall below 1).
 
-Example::
+With ``--faults``: the paper fault case instead (two-joint arm, ``hold``/``sine``,
+the paper's true parameters, every fault kind of the default suite on both
+joints at 3 s): latency, misses and false alarms of the ``certified``, ``rmi``
+and ``empirical`` bands, and the false alarms of the fault-free run.
+
+With ``--remainder``: how tight the remainder bound is on the tests' pendulum fixture
+(``sine``, 1 s, ``splits=2``): the largest true remainder ``|R_k|`` and input ``|xi_k|``
+over the corners and 200 draws as a share of the bounds ``r_k`` and ``w_k``, and how far
+samples leave the band when the remainder is halved or switched off.
+
+Examples::
 
     PYTHONPATH=src python3 benchmarks/certified.py --cases arm2_hold_sine --duration 15 \\
         --json benchmarks/results/certified_cpu.json
+    PYTHONPATH=src python3 benchmarks/certified.py --faults --duration 15 \\
+        --json benchmarks/results/certified_faults_cpu.json
 """
 
 from __future__ import annotations
@@ -29,6 +44,7 @@ jax.config.update("jax_enable_x64", True)
 from _common import run_meta  # noqa: E402
 
 import rmijax  # noqa: E402
+from rmijax.methods.base import DivergedError  # noqa: E402
 from rmijax.methods.certified import certified_bounds  # noqa: E402
 
 CASES = {
@@ -37,6 +53,7 @@ CASES = {
     "arm2_hold_composite": (rmijax.paper_arm2, ["hold", "composite"]),
     "arm2_slow_sine_composite": (rmijax.paper_arm2, ["slow_sine", "composite"]),
     "pendulum_sine": (rmijax.paper_pendulum, ["sine"]),
+    "preset2_sine": (lambda: rmijax.preset_arm(2), ["sine"] * 2),
     "preset4_sine": (lambda: rmijax.preset_arm(4), ["sine"] * 4),
     "preset6_sine": (lambda: rmijax.preset_arm(6), ["sine"] * 6),
 }
@@ -58,38 +75,60 @@ def run_case(name, duration, draws, every, splits):
     bounds, cert = certified_bounds(traj, params, splits=splits)
     bounds.upper.block_until_ready()
     seconds = time.perf_counter() - start
+    start = time.perf_counter()
+    again, _ = certified_bounds(traj, params, splits=splits)
+    again.upper.block_until_ready()
+    seconds_warm = time.perf_counter() - start
     upper, lower = np.asarray(bounds.upper), np.asarray(bounds.lower)
+    times = np.arange(0.5, duration + 1e-9, every)
+    steps = np.round(times / traj.dt).astype(int)
     escapes, total = 0, 0
     worst = -np.inf
     samples = _samples(params, draws)
+    run_high = np.full(upper.shape, -np.inf)  # (T+1, n, 2) over all samples
+    run_low = np.full(upper.shape, np.inf)
+    arg_high = np.zeros(upper.shape, int)
+    arg_low = np.zeros(upper.shape, int)
+    offset = 0
     for chunk in np.array_split(samples, max(1, len(samples) // 256)):
         states = np.asarray(rmijax.simulate(traj, params, chunk)[0])
         out = np.maximum(states - upper, lower - states)
         escapes += int(np.sum(np.any(out > 1e-12, axis=(1, 2, 3))))
         total += len(chunk)
         worst = max(worst, float(out.max()))
-    times = np.arange(0.5, duration + 1e-9, every)
+        better = states.max(0) > run_high
+        arg_high = np.where(better, offset + states.argmax(0), arg_high)
+        run_high = np.where(better, states.max(0), run_high)
+        better = states.min(0) < run_low
+        arg_low = np.where(better, offset + states.argmin(0), arg_low)
+        run_low = np.where(better, states.min(0), run_low)
+        offset += len(chunk)
+    seen_high, seen_low = run_high[steps], run_low[steps]
     table = rmijax.worst_case_table(traj, params, times, random_starts=2, iterations=20)
-    steps = table["steps"]
+    assert np.array_equal(steps, table["steps"])
     p = params.n_params
     maximisers = np.concatenate([table["th_low"].reshape(-1, p), table["th_high"].reshape(-1, p)])
     states = np.asarray(rmijax.simulate(traj, params, maximisers)[0])
     out = np.maximum(states - upper, lower - states)
     wc_escapes = int(np.sum(np.any(out > 1e-12, axis=(1, 2, 3))))
     worst = max(worst, float(out.max()))
-    reach_high = np.maximum(table["high"], states[:, steps].max(0))
-    reach_low = np.minimum(table["low"], states[:, steps].min(0))
+    reach_high = np.maximum.reduce([table["high"], states[:, steps].max(0), seen_high])
+    reach_low = np.minimum.reduce([table["low"], states[:, steps].min(0), seen_low])
     ratio = (upper[steps] - lower[steps]) / (reach_high - reach_low)
+    attack = _attack(traj, params, upper, lower, run_high, run_low, arg_high, arg_low, samples)
+    worst = max(worst, attack.pop("worst"))
     row = dict(
         case=name,
         n=params.n_joints,
         pieces=int(cert.n_pieces),
         steps=traj.n_steps,
         seconds=round(seconds, 2),
+        seconds_warm=round(seconds_warm, 2),
         samples=total,
         samples_outside=escapes,
         maximisers=len(maximisers),
         maximisers_outside=wc_escapes,
+        **attack,
         worst_excess=worst,
     )
     for sensor, label in enumerate(("encoder", "tachometer")):
@@ -100,6 +139,185 @@ def run_case(name, duration, draws, every, splits):
     return row
 
 
+def run_remainder(duration=1.0, splits=2, draws=200):
+    """How tight the remainder bound is: the pendulum fixture of the tests (``sine``).
+
+    For each piece, the true remainder ``R_k(th) = x_k(th) - (x_c + S d + 1/2 Q[d, d])``
+    of the corners and ``draws`` uniform draws in it (run by ``simulate``), its input
+    ``xi_k = R_(k+1) - A R_k``, against the certificate's ``r_k`` and ``w_k``; and how far
+    the samples leave the band when the remainder is halved or switched off.
+    """
+    params = rmijax.paper_pendulum()
+    traj = rmijax.trajectory(["sine"], duration=duration)
+    bounds, cert = certified_bounds(traj, params, splits=splits)
+    samples = _samples(params, draws)
+    states = np.asarray(rmijax.simulate(traj, params, samples)[0])  # (S, T+1, n, 2)
+    kp, kd, dt = np.asarray(traj.kp), np.asarray(traj.kd), traj.dt
+    n = traj.n_joints
+    a = np.zeros((n, 2, 2))
+    a[:, 0, 0], a[:, 0, 1], a[:, 1, 0], a[:, 1, 1] = 1.0, dt, -kp * dt, 1.0 - kd * dt
+    reached_r = np.zeros(np.asarray(cert.remainder).shape)  # (P, T+1, n, 2)
+    reached_w = np.zeros(np.asarray(cert.injected).shape)  # (P, T, n, 2)
+    for piece in range(cert.n_pieces):
+        lo, hi = np.asarray(cert.lo)[piece], np.asarray(cert.hi)[piece]
+        inside = np.all((samples >= lo) & (samples <= hi), axis=1)
+        d = samples[inside] - np.asarray(cert.center)[piece]
+        poly = (
+            np.asarray(cert.state)[piece][None]
+            + np.einsum("tnsp,Sp->Stns", np.asarray(cert.sens)[piece], d)
+            + 0.5 * np.einsum("tnspq,Sp,Sq->Stns", np.asarray(cert.sens2)[piece], d, d)
+        )
+        remainder = states[inside] - poly
+        xi = remainder[:, 1:] - np.einsum("nij,Stnj->Stni", a, remainder[:, :-1])
+        reached_r[piece] = np.abs(remainder).max(0)
+        reached_w[piece] = np.abs(xi).max(0)
+    ratio_r = reached_r / np.maximum(np.asarray(cert.remainder), 1e-300)
+    ratio_w = reached_w / np.maximum(np.asarray(cert.injected), 1e-300)
+    k0 = int(round(0.5 / traj.dt))
+    share = np.asarray(cert.remainder).max(0)[k0:] / np.asarray(bounds.width)[k0:]
+    result = dict(case="pendulum_sine", duration=duration, splits=splits, samples=len(samples))
+    for sensor, label in enumerate(("encoder", "tachometer")):
+        w_part = ratio_w[:, :, :, sensor].max(axis=(0, 2))  # (T,) over pieces and joints
+        r_part = ratio_r[:, :, :, sensor].max(axis=(0, 2))
+        result[label] = dict(
+            input_reached_step0=round(float(w_part[0]), 4),
+            input_reached_steps8_96=[
+                round(float(w_part[8:97].min()), 5),
+                round(float(w_part[8:97].max()), 5),
+            ],
+            remainder_reached_steps8_96=[
+                round(float(r_part[8:97].min()), 5),
+                round(float(r_part[8:97].max()), 5),
+            ],
+            remainder_share_of_width_median=round(float(np.median(share[..., sensor])), 4),
+        )
+    for scale in (0.5, 0.0):
+        mutant, _ = certified_bounds(traj, params, splits=splits, remainder_scale=scale)
+        out = np.maximum(states - np.asarray(mutant.upper), np.asarray(mutant.lower) - states)
+        where = np.unravel_index(np.argmax(out), out.shape)
+        result[f"escape_scale_{scale}"] = dict(
+            excess=float(out.max()),
+            sample=[float(v) for v in samples[where[0]]],
+            step=int(where[1]),
+            sensor=("encoder", "tachometer")[int(where[3])],
+            steps_with_escape=int(np.sum(np.any(out > 1e-12, axis=(0, 2, 3)))),
+        )
+    # the same mutation on the two-joint arm (hold / sine, 0.3 s, default 16 pieces)
+    arm = rmijax.paper_arm2()
+    arm_traj = rmijax.trajectory(["hold", "sine"], duration=0.3)
+    arm_samples = _samples(arm, draws)
+    arm_states = np.asarray(rmijax.simulate(arm_traj, arm, arm_samples)[0])
+    for scale in (1.0, 0.5):
+        band, _ = certified_bounds(arm_traj, arm, remainder_scale=scale)
+        out = np.maximum(arm_states - np.asarray(band.upper), np.asarray(band.lower) - arm_states)
+        result[f"arm2_hold_sine_0.3s_scale_{scale}"] = dict(
+            samples=len(arm_samples), worst_excess=float(out.max())
+        )
+    return result
+
+
+FAULT_METHODS = ("certified", "rmi", "empirical")
+
+
+def run_faults(duration, onset=3.0):
+    """The default fault suite on the paper fault case against each method's band."""
+    from rmijax.apps.experiments import fault_table, paper_true_parameters
+    from rmijax.detection.suite import default_fault_suite
+
+    params = rmijax.paper_arm2()
+    traj = rmijax.trajectory(["hold", "sine"], duration=duration)
+    th_true = paper_true_parameters(params)
+    bands, seconds = {}, {}
+    for method in FAULT_METHODS:
+        start = time.perf_counter()
+        bands[method] = rmijax.bounds(traj, params, method=method)
+        bands[method].upper.block_until_ready()
+        seconds[method] = round(time.perf_counter() - start, 2)
+    _, y_free = rmijax.simulate(traj, params, th_true)
+    free = {m: int(rmijax.detect(y_free, b).false_alarms) for m, b in bands.items()}
+    rows = []
+    for row in fault_table(traj, params, th_true, bands, default_fault_suite(2, onset)):
+        entry = dict(fault=row.fault.label)
+        for method, found in row.results.items():
+            entry[method] = dict(
+                latency_s=None if found.latency is None else round(found.latency, 4),
+                false_alarms=int(found.false_alarms),
+                alarm_output=found.describe_output(found.alarm_output),
+                true_exit_s=None if found.true_exit is None else round(found.true_exit, 4),
+            )
+        rows.append(entry)
+    summary = {}
+    for method in FAULT_METHODS:
+        latencies = [r[method]["latency_s"] for r in rows]
+        caught = [v for v in latencies if v is not None]
+        summary[method] = dict(
+            band_seconds=seconds[method],
+            detected=len(caught),
+            missed=len(rows) - len(caught),
+            median_latency_s=float(np.median(caught)) if caught else None,
+            false_alarms_fault_runs=int(sum(r[method]["false_alarms"] for r in rows)),
+            false_alarms_fault_free=free[method],
+            mean_width=np.asarray(bands[method].width).mean(axis=(0, 1)).round(6).tolist(),
+        )
+    return dict(case="arm2_hold_sine", duration=duration, onset=onset, summary=summary, rows=rows)
+
+
+def _print_faults(result):
+    print(f"{'fault':28}" + "".join(f"{m:>12}" for m in FAULT_METHODS))
+    for row in result["rows"]:
+        cells = []
+        for method in FAULT_METHODS:
+            latency = row[method]["latency_s"]
+            cells.append("miss" if latency is None else f"{latency:.2f} s")
+        print(f"{row['fault']:28}" + "".join(f"{c:>12}" for c in cells))
+    for method, s in result["summary"].items():
+        print(
+            f"{method}: detected {s['detected']}/{s['detected'] + s['missed']}, median latency "
+            f"{s['median_latency_s']} s, false alarms {s['false_alarms_fault_runs']} (faulty runs) "
+            f"{s['false_alarms_fault_free']} (fault-free), band {s['band_seconds']} s"
+        )
+
+
+def _attack(traj, params, upper, lower, run_high, run_low, arg_high, arg_low, samples, count=8):
+    """An attack on the band where it is tightest: projected gradient over ``th`` of the slack.
+
+    At ``count`` steps (after 0.1 s, 0.2 s apart) where the corners and draws came closest to the
+    band (smallest slack ``min(upper - y, y - lower)`` relative to the width, over all
+    outputs), ``worst_case_table`` minimises the slack of every output (maximising
+    ``y`` minimises ``upper - y``, minimising it ``y - lower``) from the samples that
+    came closest, the corners (``p <= 6``) and 4 random starts, 40 iterations; every
+    parameter it returns is run over the whole horizon by ``simulate``.
+    """
+    width = np.maximum(upper - lower, 1e-300)
+    slack = np.minimum(upper - run_high, run_low - lower) / width  # (T+1, n, 2)
+    first = int(round(0.1 / traj.dt))
+    per_step = slack[first:].reshape(slack.shape[0] - first, -1).min(axis=1)
+    chosen = []
+    for k in first + np.argsort(per_step):  # the tightest steps, at least 0.2 s apart
+        if all(abs(k - c) * traj.dt >= 0.2 for c in chosen):
+            chosen.append(int(k))
+        if len(chosen) == count:
+            break
+    steps = np.sort(np.asarray(chosen))
+    rows = np.unique(np.concatenate([arg_high[steps].ravel(), arg_low[steps].ravel()]))
+    starts = samples[rows[:32]]
+    table = rmijax.worst_case_table(
+        traj, params, steps * traj.dt, starts=starts, random_starts=4, iterations=40
+    )
+    p = params.n_params
+    found = np.concatenate([table["th_low"].reshape(-1, p), table["th_high"].reshape(-1, p)])
+    states = np.asarray(rmijax.simulate(traj, params, found)[0])
+    out = np.maximum(states - upper, lower - states)
+    reached = np.minimum(upper[steps] - table["high"], table["low"] - lower[steps])
+    return dict(
+        attack_steps=[int(k) for k in steps],
+        attack_runs=len(found),
+        attack_outside=int(np.sum(np.any(out > 1e-12, axis=(1, 2, 3)))),
+        attack_min_slack_rel=float(np.min(reached / width[steps])),
+        worst=float(out.max()),
+    )
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", nargs="+", default=list(CASES)[:4], choices=list(CASES))
@@ -108,20 +326,54 @@ def main(argv=None):
     parser.add_argument("--every", type=float, default=0.5, help="scored times, every s")
     parser.add_argument("--splits", type=int, default=None, help="mass splits (default: auto)")
     parser.add_argument("--json", help="write the results to this JSON file")
+    parser.add_argument(
+        "--faults", action="store_true", help="run the fault suite on the paper fault case"
+    )
+    parser.add_argument(
+        "--remainder", action="store_true", help="measure how tight the remainder bound is"
+    )
     args = parser.parse_args(argv)
+    if args.remainder:
+        result = run_remainder()
+        print(json.dumps(result, indent=1))
+        if args.json:
+            record = dict(meta=run_meta("benchmarks/certified.py", dtype="float64"), **result)
+            with open(args.json, "w") as handle:
+                json.dump(record, handle, indent=1)
+        return result
+    if args.faults:
+        result = run_faults(args.duration)
+        _print_faults(result)
+        if args.json:
+            record = dict(meta=run_meta("benchmarks/certified.py", dtype="float64"), **result)
+            with open(args.json, "w") as handle:
+                json.dump(record, handle, indent=1)
+        return result
     rows = []
     header = (
         f"{'case':26} {'n':>2} {'pcs':>4} {'time s':>8} {'out/samples':>12} {'out/wc':>7} "
+        f"{'out/atk':>7} "
         f"{'enc med':>8} {'enc p90':>8} {'tach med':>8} {'tach p90':>8}"
     )
     print(header, flush=True)
     for name in args.cases:
-        row = run_case(name, args.duration, args.draws, args.every, args.splits)
+        started = time.perf_counter()
+        try:
+            row = run_case(name, args.duration, args.draws, args.every, args.splits)
+        except DivergedError as err:  # the bound blew up: record where, and go on
+            seconds = round(time.perf_counter() - started, 2)
+            row = dict(case=name, diverged=str(err), seconds=seconds)
+            rows.append(row)
+            print(f"{name:26} diverged after {row['seconds']} s: {err}", flush=True)
+            if args.json:
+                _write(args, rows)
+            continue
         rows.append(row)
         print(
             f"{name:26} {row['n']:>2} {row['pieces']:>4} {row['seconds']:>8.1f} "
             f"{row['samples_outside']:>5}/{row['samples']:<6} {row['maximisers_outside']:>3}/"
-            f"{row['maximisers']:<3} {row['encoder_median']:>8} {row['encoder_p90']:>8} "
+            f"{row['maximisers']:<3} {row['attack_outside']:>3}/{row['attack_runs']:<3} "
+            f"{row['encoder_median']:>8} {row['encoder_p90']:>8} "
             f"{row['tachometer_median']:>8} {row['tachometer_p90']:>8}",
             flush=True,
         )

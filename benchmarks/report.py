@@ -292,6 +292,54 @@ def agreement_table():
     return _table(header, rows)
 
 
+CERTIFIED_FILES = ("certified_cpu.json", "certified_presets_cpu.json", "certified_preset6_cpu.json")
+"""Results of ``benchmarks/certified.py``, in the order the table lists them."""
+
+
+def certified_table():
+    """The certified bands: soundness counts, width over the worst case, time per case."""
+    rows = []
+    for name in CERTIFIED_FILES:
+        data = _load(name)
+        duration = data["meta"]["command"].split("--duration ")[1].split()[0]
+        for r in data["rows"]:
+            if "diverged" in r:
+                step = r["diverged"].split("(step ")[1].split(",")[0]
+                rows.append(
+                    (f"`{r['case']}`", f"{duration} s", f"diverged at step {step}")
+                    + ("-",) * 5
+                    + (f"{r['seconds']:.1f}", "-")
+                )
+                continue
+            rows.append(
+                (
+                    f"`{r['case']}`",
+                    f"{duration} s",
+                    f"{r['samples_outside']} of {r['samples']}",
+                    f"{r['maximisers_outside']} of {r['maximisers']}",
+                    f"{r['attack_outside']} of {r['attack_runs']}",
+                    " / ".join(f"{r['encoder_' + k]:.3f}" for k in ("median", "p90", "min")),
+                    " / ".join(f"{r['tachometer_' + k]:.3f}" for k in ("median", "p90", "min")),
+                    r["pieces"],
+                    f"{r['seconds']:.1f}",
+                    f"{r['seconds_warm']:.1f}",
+                )
+            )
+    header = (
+        "case",
+        "run",
+        "runs outside (corners + draws)",
+        "maximisers outside",
+        "attack finds outside",
+        "encoder width/worst median / p90 / min",
+        "tachometer width/worst median / p90 / min",
+        "pieces",
+        "first call s",
+        "second call s",
+    )
+    return _table(header, rows)
+
+
 def _load_avg(meta):
     load = meta.get("load_avg", meta.get("load_average_after"))
     return ", ".join(f"{x:.2f}" for x in load) if load else "not recorded"
@@ -336,7 +384,7 @@ BLOCKS = {
         "precision": precision_table,
         "monitor": monitor_table,
     },
-    "docs/methods.md": {"methods-cost": methods_cost},
+    "docs/methods.md": {"methods-cost": methods_cost, "certified": certified_table},
     "notebooks/method_comparison_conclusions.md": {
         "comparison": comparison_full,
         "agreement": agreement_table,
