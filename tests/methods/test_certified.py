@@ -105,12 +105,17 @@ def test_adversarial_attack_on_the_band(pendulum):
     assert _escape(bounds, np.asarray(states)) <= TOL
 
 
-def test_remainder_switched_off_lets_samples_escape(pendulum):
-    """The mutation: without the remainder the band is the quadratic's range alone."""
-    traj, params, _, _ = pendulum
-    mutant, _ = certified_bounds(traj, params, splits=2, remainder_scale=0.0)
-    states, _ = rmijax.simulate(traj, params, _samples(params))
-    assert _escape(mutant, np.asarray(states)) > 1e-9
+@pytest.mark.parametrize("scale", [0.0, 0.5])
+def test_remainder_switched_off_or_halved_lets_samples_escape(pendulum, scale):
+    """The mutations: the same containment check as above fails when the remainder bound is
+    switched off or halved. Halved, the corner (m, l) = (9, 0.99) leaves the tachometer band
+    at step 1 by ~6e-7 rad/s: there the bound is within 2x of the true remainder (about
+    0.51 of it is reached); later in the run it is looser (see docs/methods.md)."""
+    traj, params, bounds, _ = pendulum
+    mutant, _ = certified_bounds(traj, params, splits=2, remainder_scale=scale)
+    states = np.asarray(rmijax.simulate(traj, params, _samples(params))[0])
+    assert _escape(bounds, states) <= TOL
+    assert _escape(mutant, states) > 1e-9
 
 
 def test_checker_accepts_the_certificate_and_rejects_tampering(pendulum):
