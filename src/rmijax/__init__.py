@@ -16,10 +16,12 @@ from rmijax.detection.detect import (
     detect as detect,
 )
 from rmijax.detection.monitor import (
+    BandMonitorState as BandMonitorState,
     Monitor as Monitor,
     MonitorOutput as MonitorOutput,
     MonitorState as MonitorState,
     monitor as monitor,
+    monitor_from_bounds as monitor_from_bounds,
 )
 from rmijax.evaluation.worst_case import (
     WorstCase as WorstCase,
@@ -94,6 +96,7 @@ __all__ = [
     "SHIPPED",
     "SCALABLE_METHODS",
     "SEARCHES",
+    "BandMonitorState",
     "Bounds",
     "Certificate",
     "Detection",
@@ -123,6 +126,7 @@ __all__ = [
     "fleet",
     "load_robot",
     "monitor",
+    "monitor_from_bounds",
     "monte_carlo_parameters",
     "paper_arm2",
     "paper_pendulum",

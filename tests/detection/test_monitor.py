@@ -197,3 +197,62 @@ def test_bad_init_and_update_shapes():
         mon.update(state, (np.zeros(2),) * 3, np.zeros(2))
     with pytest.raises(ValueError, match=r"desired qdd_d must have shape \(2,\)"):
         mon.update(state, (np.zeros(2), np.zeros(2), np.zeros(1)), np.zeros((2, 2)))
+
+
+def _planned_band(method):
+    """A pendulum motion, a band computed before it runs, and readings that leave it.
+
+    ``"certified"``: the certified band and a run with stuck sensors at 0.3 s; ``"plain"``:
+    the nominal +- 0.01 and the nominal plus uniform noise in +- 0.012 (no simulation:
+    the streaming does not depend on where the band came from).
+    """
+    params = rmijax.paper_pendulum()
+    traj = rmijax.trajectory(["sine"], duration=0.6)
+    if method == "certified":
+        band = rmijax.bounds(traj, params, method="certified", splits=1)
+        th = np.array([10.8, 0.995])  # inside the box
+        fault = rmijax.Fault("stuck_sensors", 0, 0.3)
+        _, y_meas = rmijax.simulate(traj, params, th, faults=[fault])
+        return traj, band, np.array(y_meas)
+    nominal = np.asarray(traj.x_n)
+    band = rmijax.Bounds(
+        lower=nominal - 0.01, upper=nominal + 0.01, nominal=nominal, crossed=None, dt=traj.dt
+    )
+    noise = np.random.default_rng(0).uniform(-0.012, 0.012, nominal.shape)
+    return traj, band, nominal + noise
+
+
+@pytest.mark.parametrize("method", ["plain", pytest.param("certified", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("persistence", [1, 2])
+def test_band_monitor_streams_a_precomputed_band_as_detect_sees_it(method, persistence):
+    traj, band, y_meas = _planned_band(method)
+    y_meas[5, 0, 1] = np.nan  # a NaN reading alarms in both
+    mon = rmijax.monitor_from_bounds(band, persistence=persistence)
+    state, out = run_monitor(mon, traj, jnp.asarray(y_meas))
+    report = rmijax.detect(y_meas, band, persistence=persistence)
+    np.testing.assert_array_equal(out.lower, band.lower)
+    np.testing.assert_array_equal(out.upper, band.upper)
+    np.testing.assert_array_equal(out.alarm, report.alarms)
+    assert 0 < report.alarms.sum() < report.alarms.size
+    if method == "certified":  # fault-free until 0.3 s: only the NaN reading alarms
+        assert not report.alarms[6 + persistence : 30].any() and report.alarms[30:].any()
+    assert int(state.first_alarm) == round(report.first_alarm / traj.dt)
+    assert int(state.tick) == traj.n_steps + 1
+
+
+def test_band_monitor_past_the_planned_motion():
+    traj, band, y_meas = _planned_band("plain")
+    mon = rmijax.monitor_from_bounds(band)
+    state = rmijax.BandMonitorState(
+        tick=jnp.asarray(traj.n_steps + 1, jnp.int32),
+        run_length=jnp.zeros((1, 2), jnp.int32),
+        first_alarm=jnp.asarray(-1, jnp.int32),
+    )
+    with pytest.raises(ValueError, match="past the band's last tick"):
+        mon.update(state, None, y_meas[-1])
+    _, out = jax.jit(mon.update)(state, None, y_meas[-1])
+    assert bool(jnp.all(jnp.isnan(out.upper))) and bool(jnp.all(out.alarm))
+    with pytest.raises(ValueError, match=r"y_meas must have shape \(1, 2\)"):
+        mon.update(mon.init(), None, np.zeros(2))
+    with pytest.raises(TypeError, match="rmijax.Bounds"):
+        rmijax.monitor_from_bounds(band.lower)

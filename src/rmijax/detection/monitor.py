@@ -12,6 +12,11 @@ With ``method="short_window"`` the state also buffers the last ``window``
 readings: tick ``k``'s window starts from the reading of tick
 ``k0 = max(0, k - N)``, and the bounds equal
 :func:`rmijax.methods.short_window.short_window_bounds` at every tick.
+
+For a planned motion whose band was computed beforehand (for example
+``certified``, whose band covers the whole run and is too costly to compute
+tick by tick), :func:`monitor_from_bounds` streams that band with the same
+alarm rule; its alarms equal :func:`rmijax.detect` on the band.
 """
 
 from __future__ import annotations
@@ -24,12 +29,21 @@ import jax.numpy as jnp
 
 from rmijax import _checks
 from rmijax.control import closed_loop_step, feedforward, servo_command
+from rmijax.methods.base import Bounds
 from rmijax.methods.rmi import MODES, check_memory, window_constants, window_extremes
 from rmijax.methods.short_window import start_error_bounds, transition_powers
 from rmijax.robots.box import UncertainRobot, uncertain_indices
 from rmijax.robots.check import check_model
 
-__all__ = ["METHODS", "Monitor", "MonitorOutput", "MonitorState", "monitor"]
+__all__ = [
+    "METHODS",
+    "BandMonitorState",
+    "Monitor",
+    "MonitorOutput",
+    "MonitorState",
+    "monitor",
+    "monitor_from_bounds",
+]
 
 METHODS = ("rmi", "short_window")
 """Bound methods the monitor can run: exact RMI, and short windows from the readings."""
@@ -307,5 +321,110 @@ def monitor(
             desired_invalid=desired_invalid,
         )
         return new_state, output
+
+    return Monitor(init=init, update=update)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class BandMonitorState:
+    """What :func:`monitor_from_bounds` carries from tick to tick.
+
+    Attributes:
+        tick: the next tick ``k`` (int32).
+        run_length: (n, 2) int32 consecutive out-of-band ticks per output.
+        first_alarm: int32 tick of the first alarm so far, -1 if none.
+    """
+
+    tick: jax.Array
+    run_length: jax.Array
+    first_alarm: jax.Array
+
+
+def monitor_from_bounds(bounds: Bounds, *, persistence: int = 1, tol: float = 1e-9) -> Monitor:
+    """Stream a precomputed band of a planned motion: ``init`` and ``update`` as :func:`monitor`.
+
+    Tick ``k`` compares the reading with ``bounds.lower[k]``, ``bounds.upper[k]``
+    under the same rule as :func:`monitor` and :func:`rmijax.detect` (outside by
+    more than ``tol``, NaN counts as outside, ``persistence`` consecutive ticks),
+    so the streamed alarms equal ``detect(y_meas, bounds, persistence=..., tol=...)``
+    tick by tick. The band must belong to the motion being run (the same desired
+    path, gains and ``dt``); nothing here can check that.
+
+    Args:
+        bounds: the band, ``lower``, ``upper``, ``nominal`` of shape (T+1, n, 2),
+            e.g. from ``rmijax.bounds(traj, params, method="certified")``.
+        persistence: consecutive out-of-band ticks for an alarm.
+        tol: how far outside a band a reading must be.
+
+    Returns:
+        A :class:`Monitor`: ``init(q_d0=None, qd_d0=None)`` (the arguments are
+        accepted for drop-in use and ignored) and ``update(state, desired,
+        y_meas)`` with ``y_meas`` (n, 2); ``desired`` is accepted and ignored
+        (the band already holds the motion). Returns ``(state, MonitorOutput)``.
+        Past the band's last tick ``T`` there is no band: outside ``jit`` that
+        is refused, inside it the bounds are NaN and every output alarms.
+
+    Example::
+
+        band = rmijax.bounds(traj, params, method="certified")
+        mon = rmijax.monitor_from_bounds(band)
+        state = mon.init()
+        for k in range(T + 1):
+            state, out = mon.update(state, None, y_meas[k])
+    """
+    if not isinstance(bounds, Bounds):
+        raise TypeError(
+            f"bounds must be a rmijax.Bounds (from rmijax.bounds), got {type(bounds).__name__}"
+        )
+    lower, upper, nominal = (jnp.asarray(a) for a in (bounds.lower, bounds.upper, bounds.nominal))
+    if lower.ndim != 3 or lower.shape[-1] != 2 or upper.shape != lower.shape:
+        raise ValueError(
+            f"bounds must hold a whole run, lower and upper of shape (T+1, n, 2), got "
+            f"{lower.shape} and {upper.shape}"
+        )
+    persistence = _checks.positive_int("persistence", persistence)
+    tol = _checks.tolerance(tol)
+    last, n = lower.shape[0] - 1, lower.shape[1]
+
+    def init(q_d0=None, qd_d0=None) -> BandMonitorState:
+        return BandMonitorState(
+            tick=jnp.zeros((), jnp.int32),
+            run_length=jnp.zeros((n, 2), jnp.int32),
+            first_alarm=jnp.full((), -1, jnp.int32),
+        )
+
+    def update(state: BandMonitorState, desired, y_meas):
+        if jnp.shape(y_meas) != (n, 2):
+            raise ValueError(f"y_meas must have shape ({n}, 2), got {jnp.shape(y_meas)}")
+        k = state.tick
+        if _checks.is_concrete(k) and int(k) > last:
+            raise ValueError(
+                f"tick {int(k)} is past the band's last tick {last}: the planned motion is over"
+            )
+        planned = k <= last
+        row = jnp.minimum(k, last)
+        low = jnp.where(planned, lower[row], jnp.nan)
+        high = jnp.where(planned, upper[row], jnp.nan)
+        y = jnp.asarray(y_meas, lower.dtype)
+        nan_reading = jnp.isnan(y)
+        outside = ~((y >= low - tol) & (y <= high + tol))
+        run_length = jnp.where(outside, state.run_length + 1, 0).astype(jnp.int32)
+        alarm = run_length >= persistence
+        first_alarm = jnp.where(
+            (state.first_alarm < 0) & jnp.any(alarm), k, state.first_alarm
+        ).astype(jnp.int32)
+        output = MonitorOutput(
+            lower=low,
+            upper=high,
+            nominal=jnp.where(planned, nominal[row], jnp.nan),
+            alarm=alarm,
+            outside=outside,
+            nan_reading=nan_reading,
+            first_alarm=first_alarm,
+            tick=k,
+            desired_invalid=jnp.zeros((), bool),
+        )
+        return BandMonitorState(k + 1, run_length, first_alarm), output
 
     return Monitor(init=init, update=update)
