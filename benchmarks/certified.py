@@ -5,7 +5,9 @@ For each case:
 - time: one call with compile (``seconds``) and a second call (``seconds_warm``);
 - soundness: all ``2^p`` corners (``p <= 12``) and ``--draws`` uniform draws run by
   ``rmijax.simulate``, and the ``worst_case`` maximisers at the scored times; the
-  count of samples outside the band by more than 1e-12;
+  count of samples outside the band by more than 1e-12; an attack on the band
+  (projected gradient over ``th`` of the slack, with restarts) at the steps where
+  the samples came closest, its finds run over the whole horizon;
 - tightness: band width / worst-case range (``rmijax.worst_case_table``) at
   times every ``--every`` s after 0.5 s, median and p90 per sensor (and the
   minimum, which must not fall below 1).
@@ -76,16 +78,25 @@ def run_case(name, duration, draws, every, splits):
     escapes, total = 0, 0
     worst = -np.inf
     samples = _samples(params, draws)
-    seen_high = np.full(upper[steps].shape, -np.inf)
-    seen_low = np.full(upper[steps].shape, np.inf)
+    run_high = np.full(upper.shape, -np.inf)  # (T+1, n, 2) over all samples
+    run_low = np.full(upper.shape, np.inf)
+    arg_high = np.zeros(upper.shape, int)
+    arg_low = np.zeros(upper.shape, int)
+    offset = 0
     for chunk in np.array_split(samples, max(1, len(samples) // 256)):
         states = np.asarray(rmijax.simulate(traj, params, chunk)[0])
         out = np.maximum(states - upper, lower - states)
         escapes += int(np.sum(np.any(out > 1e-12, axis=(1, 2, 3))))
         total += len(chunk)
         worst = max(worst, float(out.max()))
-        seen_high = np.maximum(seen_high, states[:, steps].max(0))
-        seen_low = np.minimum(seen_low, states[:, steps].min(0))
+        better = states.max(0) > run_high
+        arg_high = np.where(better, offset + states.argmax(0), arg_high)
+        run_high = np.where(better, states.max(0), run_high)
+        better = states.min(0) < run_low
+        arg_low = np.where(better, offset + states.argmin(0), arg_low)
+        run_low = np.where(better, states.min(0), run_low)
+        offset += len(chunk)
+    seen_high, seen_low = run_high[steps], run_low[steps]
     table = rmijax.worst_case_table(traj, params, times, random_starts=2, iterations=20)
     assert np.array_equal(steps, table["steps"])
     p = params.n_params
@@ -97,6 +108,8 @@ def run_case(name, duration, draws, every, splits):
     reach_high = np.maximum.reduce([table["high"], states[:, steps].max(0), seen_high])
     reach_low = np.minimum.reduce([table["low"], states[:, steps].min(0), seen_low])
     ratio = (upper[steps] - lower[steps]) / (reach_high - reach_low)
+    attack = _attack(traj, params, upper, lower, run_high, run_low, arg_high, arg_low, samples)
+    worst = max(worst, attack.pop("worst"))
     row = dict(
         case=name,
         n=params.n_joints,
@@ -108,6 +121,7 @@ def run_case(name, duration, draws, every, splits):
         samples_outside=escapes,
         maximisers=len(maximisers),
         maximisers_outside=wc_escapes,
+        **attack,
         worst_excess=worst,
     )
     for sensor, label in enumerate(("encoder", "tachometer")):
@@ -180,6 +194,46 @@ def _print_faults(result):
         )
 
 
+def _attack(traj, params, upper, lower, run_high, run_low, arg_high, arg_low, samples, count=8):
+    """An attack on the band where it is tightest: projected gradient over ``th`` of the slack.
+
+    At ``count`` steps (after 0.1 s, 0.2 s apart) where the corners and draws came closest to the
+    band (smallest slack ``min(upper - y, y - lower)`` relative to the width, over all
+    outputs), ``worst_case_table`` minimises the slack of every output (maximising
+    ``y`` minimises ``upper - y``, minimising it ``y - lower``) from the samples that
+    came closest, the corners (``p <= 6``) and 4 random starts, 40 iterations; every
+    parameter it returns is run over the whole horizon by ``simulate``.
+    """
+    width = np.maximum(upper - lower, 1e-300)
+    slack = np.minimum(upper - run_high, run_low - lower) / width  # (T+1, n, 2)
+    first = int(round(0.1 / traj.dt))
+    per_step = slack[first:].reshape(slack.shape[0] - first, -1).min(axis=1)
+    chosen = []
+    for k in first + np.argsort(per_step):  # the tightest steps, at least 0.2 s apart
+        if all(abs(k - c) * traj.dt >= 0.2 for c in chosen):
+            chosen.append(int(k))
+        if len(chosen) == count:
+            break
+    steps = np.sort(np.asarray(chosen))
+    rows = np.unique(np.concatenate([arg_high[steps].ravel(), arg_low[steps].ravel()]))
+    starts = samples[rows[:32]]
+    table = rmijax.worst_case_table(
+        traj, params, steps * traj.dt, starts=starts, random_starts=4, iterations=40
+    )
+    p = params.n_params
+    found = np.concatenate([table["th_low"].reshape(-1, p), table["th_high"].reshape(-1, p)])
+    states = np.asarray(rmijax.simulate(traj, params, found)[0])
+    out = np.maximum(states - upper, lower - states)
+    reached = np.minimum(upper[steps] - table["high"], table["low"] - lower[steps])
+    return dict(
+        attack_steps=[int(k) for k in steps],
+        attack_runs=len(found),
+        attack_outside=int(np.sum(np.any(out > 1e-12, axis=(1, 2, 3)))),
+        attack_min_slack_rel=float(np.min(reached / width[steps])),
+        worst=float(out.max()),
+    )
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", nargs="+", default=list(CASES)[:4], choices=list(CASES))
@@ -203,6 +257,7 @@ def main(argv=None):
     rows = []
     header = (
         f"{'case':26} {'n':>2} {'pcs':>4} {'time s':>8} {'out/samples':>12} {'out/wc':>7} "
+        f"{'out/atk':>7} "
         f"{'enc med':>8} {'enc p90':>8} {'tach med':>8} {'tach p90':>8}"
     )
     print(header, flush=True)
@@ -212,7 +267,8 @@ def main(argv=None):
         print(
             f"{name:26} {row['n']:>2} {row['pieces']:>4} {row['seconds']:>8.1f} "
             f"{row['samples_outside']:>5}/{row['samples']:<6} {row['maximisers_outside']:>3}/"
-            f"{row['maximisers']:<3} {row['encoder_median']:>8} {row['encoder_p90']:>8} "
+            f"{row['maximisers']:<3} {row['attack_outside']:>3}/{row['attack_runs']:<3} "
+            f"{row['encoder_median']:>8} {row['encoder_p90']:>8} "
             f"{row['tachometer_median']:>8} {row['tachometer_p90']:>8}",
             flush=True,
         )
