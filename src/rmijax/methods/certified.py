@@ -56,7 +56,6 @@ import numpy as np
 
 from rmijax import _checks
 from rmijax._intervals import Interval, Tape, run_tape, up
-from rmijax._linalg import ldl_factor, ldl_solve
 from rmijax.methods.base import Bounds, DivergedError, check_types
 from rmijax.robots.box import UncertainRobot
 from rmijax.robots.model import GRAVITY
@@ -134,6 +133,63 @@ def _torque_terms(weights, cos_phi, cos_d, sin_d, rate_sq, acc, gravity_weights)
     return out
 
 
+def _articulated_solve(masses, cos_d, sin_d, rhs):
+    """Solve ``(Mu o C) psi = rhs`` by eliminating from the tip: pivots without cancellation.
+
+    ``(Mu o C)_ab = e_a' (sum_{k >= max(a, b)} m_k) e_b`` with ``e_a`` the unit vector
+    of link ``a``. Eliminating links ``n-1 .. j+1`` leaves, for ``a, b <= j``, the same
+    form with the eliminated links' articulated inertia ``kappa_(j+1) n n'`` added
+    (``n`` the normal of link ``j+1``), so with ``B_j = m_j I + kappa_(j+1) n n'``:
+    pivot ``D_j = e_j' B_j e_j = m_j + kappa_(j+1) sin^2(q_(j+1))``, column
+    ``(Mu o C)'_aj = e_a' B_j e_j = m_j cos(phi_a - phi_j) + kappa_(j+1)
+    sin(phi_a - phi_(j+1)) sin(phi_j - phi_(j+1))`` (a < j), and ``kappa_j = det B_j /
+    D_j = m_j (m_j + kappa_(j+1)) / D_j`` (``kappa_n = 0``). Every pivot is a sum of
+    non-negative terms, so interval enclosures stay away from 0 where base-first ``LDL'``
+    of the tail sums (``mu_a - ...``, differences of shared masses) does not: at 4 links
+    its third pivot's enclosure held 0 even with each mass range cut in 4.
+
+    Args:
+        masses: ``n`` link masses (kg); cos_d, sin_d: ``cos/sin(phi_a - phi_b)``
+            (``n x n`` lists, the diagonal unused); rhs: ``n`` right-hand sides.
+
+    Returns:
+        ``psi``, a list of ``n``, with ``(Mu o C) psi = rhs``.
+    """
+    n = len(masses)
+    column = [[None] * n for _ in range(n)]  # column[j][a] = U_aj (a < j), U unit upper
+    inv_pivot = [None] * n
+    kappa = None
+    for j in range(n - 1, -1, -1):
+        if kappa is None:
+            pivot = masses[j]
+            entries = [masses[j] * cos_d[a][j] for a in range(j)]
+            kappa_next = masses[j]
+        else:
+            pivot = masses[j] + kappa * sin_d[j][j + 1].square()
+            entries = [
+                masses[j] * cos_d[a][j] + kappa * (sin_d[a][j + 1] * sin_d[j][j + 1])
+                for a in range(j)
+            ]
+            kappa_next = masses[j] * (masses[j] + kappa) / pivot
+        inv_pivot[j] = 1.0 / pivot
+        column[j] = [entry * inv_pivot[j] for entry in entries]
+        kappa = kappa_next
+    # U D U' psi = rhs: U z = rhs from the tip, then U' psi = z / D from the base
+    z = [None] * n
+    for j in range(n - 1, -1, -1):
+        total = rhs[j]
+        for b in range(j + 1, n):
+            total = total - column[b][j] * z[b]
+        z[j] = total
+    psi = [None] * n
+    for j in range(n):
+        total = z[j] * inv_pivot[j]
+        for a in range(j):
+            total = total - column[j][a] * psi[a]
+        psi[j] = total
+    return psi
+
+
 def planar_perturbation_jets(q, qd, th, nominal, u, kp, kd, noise=None):
     """``gv = qdd - v`` of the planar point-mass arm on jets: a list of ``n`` jets.
 
@@ -143,7 +199,7 @@ def planar_perturbation_jets(q, qd, th, nominal, u, kp, kd, noise=None):
     interval enclosures do not carry the size of ``v``. In absolute angles
     ``M = S' (W o C) S`` and ``h = S' (W o Sn) phid^2 + S' g mu l cos phi``
     (SPEC section 1), and ``M x = S' b`` is solved as
-    ``(Mu o C)(l o S x) = b / l`` by the model's ``LDL'`` (:func:`rmijax._linalg.ldl_factor`).
+    ``(Mu o C)(l o S x) = b / l`` by eliminating from the tip (:func:`_articulated_solve`).
 
     Args:
         q, qd: the true state, lists of ``n`` jets (rad, rad/s).
@@ -186,9 +242,7 @@ def planar_perturbation_jets(q, qd, th, nominal, u, kp, kd, noise=None):
         true = _torque_terms(nominal_w, cos_phi, cos_d, sin_d, rate_sq, acc, nominal_g)
         f_phi = [f_phi[a] + measured[a] - true[a] for a in range(n)]
     rhs = [f_phi[a] / lengths[a] for a in range(n)]
-    matrix = [[mu[a] * cos_d[a][b] for b in range(a)] + [mu[a]] for a in range(n)]
-    lower, _, inv_diag = ldl_factor(matrix)
-    psi = ldl_solve(lower, inv_diag, rhs)
+    psi = _articulated_solve(masses, cos_d, sin_d, rhs)
     phidd = [psi[a] / lengths[a] for a in range(n)]
     return [phidd[0]] + [phidd[a] - phidd[a - 1] for a in range(1, n)]
 
