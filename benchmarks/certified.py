@@ -39,6 +39,7 @@ jax.config.update("jax_enable_x64", True)
 from _common import run_meta  # noqa: E402
 
 import rmijax  # noqa: E402
+from rmijax.methods.base import DivergedError  # noqa: E402
 from rmijax.methods.certified import certified_bounds  # noqa: E402
 
 CASES = {
@@ -47,6 +48,7 @@ CASES = {
     "arm2_hold_composite": (rmijax.paper_arm2, ["hold", "composite"]),
     "arm2_slow_sine_composite": (rmijax.paper_arm2, ["slow_sine", "composite"]),
     "pendulum_sine": (rmijax.paper_pendulum, ["sine"]),
+    "preset2_sine": (lambda: rmijax.preset_arm(2), ["sine"] * 2),
     "preset4_sine": (lambda: rmijax.preset_arm(4), ["sine"] * 4),
     "preset6_sine": (lambda: rmijax.preset_arm(6), ["sine"] * 6),
 }
@@ -262,7 +264,17 @@ def main(argv=None):
     )
     print(header, flush=True)
     for name in args.cases:
-        row = run_case(name, args.duration, args.draws, args.every, args.splits)
+        started = time.perf_counter()
+        try:
+            row = run_case(name, args.duration, args.draws, args.every, args.splits)
+        except DivergedError as err:  # the bound blew up: record where, and go on
+            seconds = round(time.perf_counter() - started, 2)
+            row = dict(case=name, diverged=str(err), seconds=seconds)
+            rows.append(row)
+            print(f"{name:26} diverged after {row['seconds']} s: {err}", flush=True)
+            if args.json:
+                _write(args, rows)
+            continue
         rows.append(row)
         print(
             f"{name:26} {row['n']:>2} {row['pieces']:>4} {row['seconds']:>8.1f} "
