@@ -12,8 +12,9 @@ import numpy as np
 import pytest
 
 import rmijax
-from rmijax.methods.certificate_check import check_certificate
-from rmijax.methods.certified import certified_bounds
+from rmijax._intervals import Jet
+from rmijax.methods.certificate_check import _iv, _MpBackend, check_certificate
+from rmijax.methods.certified import certified_bounds, planar_perturbation_jets
 from rmijax.methods.dispatch import options_of
 from rmijax.methods.linearized import window_output
 
@@ -223,3 +224,54 @@ def test_two_joint_arm_contains_samples(paths):
     states, _ = rmijax.simulate(traj, params, _samples(params, 200))
     assert _escape(bounds, np.asarray(states)) <= TOL
     assert check_certificate(cert, traj, params, steps=2, pieces=[0, 5]).ok
+
+
+def _planar_gv(th, nominal, q, qd, u, kp, kd):
+    """``gv = M(th)^-1 (M(th_n) v + h(th_n) - h(th)) - v`` from SPEC section 1's O(n^2) form."""
+    n = q.size
+    tail = np.triu(np.ones((n, n)))  # S': tail sums; S = tail.T maps qd to phid
+    phi, phid = np.cumsum(q), np.cumsum(qd)
+
+    def mass_and_bias(params):
+        masses, lengths = params[:n], params[n:]
+        mu = np.cumsum(masses[::-1])[::-1]
+        weights = mu[np.maximum.outer(np.arange(n), np.arange(n))] * np.outer(lengths, lengths)
+        diff = phi[:, None] - phi[None, :]
+        mass = tail @ (weights * np.cos(diff)) @ tail.T
+        bias = tail @ ((weights * np.sin(diff)) @ phid**2 + 9.81 * mu * lengths * np.cos(phi))
+        return mass, bias
+
+    v = u - kd * qd - kp * q
+    mass, bias = mass_and_bias(th)
+    mass_n, bias_n = mass_and_bias(nominal)
+    return np.linalg.solve(mass, mass_n @ v + bias_n - bias) - v
+
+
+@pytest.mark.parametrize("n", [1, 2, 4, 6])
+def test_perturbation_jets_equal_the_model_at_a_point(n):
+    """The jets' value (the tip-first solve of ``M qdd = ...``, in the checker's mpmath
+    intervals) equals ``gv`` from SPEC section 1's closed form at a random state,
+    parameter and feed-forward."""
+    params = rmijax.preset_arm(n)
+    rng = np.random.default_rng(n)
+    lo, hi = np.asarray(params.lo), np.asarray(params.hi)
+    th = lo + (hi - lo) * rng.uniform(size=lo.size)
+    q, qd, u = rng.normal(size=n), rng.normal(size=n), rng.normal(size=n)
+    kp, kd = np.full(n, 100.0), np.full(n, 20.0)
+
+    iv = _iv()
+    backend = _MpBackend(iv)
+    zero = iv.mpf(0)
+
+    def jets(values):  # points, in the checker's mpmath intervals
+        grad, hess = np.full(1, zero, dtype=object), np.full((1, 1), zero, dtype=object)
+        return [Jet(iv.mpf(float(v)), grad, hess, backend) for v in values]
+
+    gv = planar_perturbation_jets(
+        jets(q), jets(qd), jets(th), jets(np.asarray(params.nominal)), jets(u), jets(kp), jets(kd)
+    )
+    lower = np.array([float(g.v.a) for g in gv])
+    upper = np.array([float(g.v.b) for g in gv])
+    expected = _planar_gv(th, np.asarray(params.nominal), q, qd, u, kp, kd)
+    assert np.all(upper - lower < 1e-8)
+    np.testing.assert_allclose(0.5 * (lower + upper), expected, rtol=1e-10, atol=1e-10)
