@@ -27,7 +27,7 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(pathlib.Path(__file__).parent))
 
-from _common import device, table, time_calls, write_json  # noqa: E402
+from _common import run_meta, table, time_calls, write_json  # noqa: E402
 
 from rmijax.robots.loaders import SHIPPED, load_robot  # noqa: E402
 
@@ -90,17 +90,9 @@ def main(argv=None):
     args = parser.parse_args(argv)
     records = [measure(name, args.batch, args.calls) for name in args.robots]
     print(table(records, COLUMNS))
-    write_json(
-        args.json,
-        records,
-        dict(
-            device=device(),
-            dtype="float64",
-            batch=args.batch,
-            calls=args.calls,
-            jax=jax.__version__,
-        ),
-    )
+    meta = {**run_meta("benchmarks/dynamics.py", argv, dtype="float64"), "args": vars(args)}
+    write_json(args.json, records, meta)
+    print(f"device: {meta['device']}; load average {meta['load_avg']}")
     return records
 
 

@@ -157,6 +157,42 @@ def monitor_table():
     return _table(header, rows)
 
 
+def real_arm_table():
+    """Real arms: the monitor tick per method (with its fault-free false alarms) and the
+    batched M + h throughput."""
+    monitor = _load("monitor_robots_cpu.json")
+    rows = [
+        (
+            r["robot"],
+            r["method"],
+            r["p"],
+            r["window"],
+            _ms(r["p50_ms"]),
+            _ms(r["p99_ms"]),
+            r["calls"],
+            r["fault_free_alarm_ticks"],
+        )
+        for r in monitor["results"]
+    ]
+    header = ("arm", "monitor method", "p", "N", "tick p50", "tick p99", "ticks timed")
+    lines = [_table((*header, "false-alarm ticks (fault-free run)"), rows), ""]
+    dynamics = _load("dynamics_cpu.json")
+    rows = [
+        (
+            r["robot"],
+            r["n_joints"],
+            r["n_params"],
+            f"{r['pairs_per_s']:,.0f}",
+            f"{r['terms_per_s']:,.0f}",
+            f"{r['compile_s']:.2f}",
+        )
+        for r in dynamics["results"]
+    ]
+    header = ("arm", "n", "p", "M + h pairs/s", "terms states/s", "compile M + h s")
+    lines.append(_table(header, rows))
+    return "\n".join(lines)
+
+
 def precision_table():
     """float32 against float64 over whole runs, relative to the widest band."""
     rows = [
@@ -383,6 +419,7 @@ BLOCKS = {
         "scaling-targets": scaling_targets,
         "precision": precision_table,
         "monitor": monitor_table,
+        "real-arms": real_arm_table,
     },
     "docs/methods.md": {"methods-cost": methods_cost, "certified": certified_table},
     "notebooks/method_comparison_conclusions.md": {

@@ -4,8 +4,9 @@ The engine under test is ``rmijax.rmi`` with its default ``search="auto"`` (for 
 planar arm an exact search over the 2^n mass corners, for real arms the
 ``LinearDynamics`` search of ``rmijax.methods.linear_search``; SPEC sections 4-5
 unchanged). For each arm size n (``preset_arm(n)``, K = 4^n corners) or shipped real
-arm (``--robot``: ``load_robot(name, mass=0.1, payload=(0, 1) kg, viscous and Coulomb
-friction (0, 0.5))``, K = 2^p corners, p = 3n + 1, on a pick-and-place move
+arm (``--robot``: ``load_robot(name, **default_box(name))``: masses +-10 %, payload
+0-1 kg, viscous and Coulomb friction scaled to each joint's inertia), K = 2^p corners,
+p = 3n + 1, on a pick-and-place move
 home -> home + 0.3 rad -> home, 1.5 s per segment), mode and dtype:
 - compile time of the online step (first call minus a timed call);
 - online per-step latency p50/p99: one jitted call returning all bounds of one end
@@ -105,10 +106,9 @@ def robot_problem(name, dtype):
     import numpy as np
 
     import rmijax
-    from rmijax.robots.loaders import load_robot
+    from rmijax.robots.loaders import default_box, load_robot
 
-    friction = dict(viscous=(0.0, 0.5), coulomb=(0.0, 0.5))
-    params = load_robot(name, mass=0.1, payload=(0.0, 1.0), friction=friction, dtype=dtype)
+    params = load_robot(name, **default_box(name), dtype=dtype)
     home = np.asarray(ROBOT_HOMES[name])
 
     def move(segment_time):

@@ -33,7 +33,7 @@ from IPython.display import Image, Markdown, display
 import rmijax
 from rmijax.apps import real_arm
 
-params = rmijax.load_robot("panda", **real_arm.DEFAULT_BOX)
+params = rmijax.load_robot("panda", **rmijax.default_box("panda"))
 for name, nom, lo, hi in zip(params.model.param_names, params.nominal, params.lo, params.hi):
     print(f"{name:22s} {float(nom):7.3f}  [{float(lo):6.3f}, {float(hi):6.3f}]")""",
     ),

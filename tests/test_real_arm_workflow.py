@@ -10,12 +10,13 @@ import numpy as np
 import pytest
 
 import rmijax
-from rmijax.apps.real_arm import DEFAULT_BOX, home_pose, pick_and_place
+from rmijax.apps.real_arm import home_pose, pick_and_place
+from rmijax.robots.loaders import REAL_ARM_BOX
 
 
 @pytest.fixture(scope="module")
 def panda():
-    return rmijax.load_robot("panda", **DEFAULT_BOX)
+    return rmijax.load_robot("panda", **rmijax.default_box("panda"))
 
 
 @pytest.fixture(scope="module")
@@ -107,20 +108,43 @@ def panda_true_robots(params, draws, seed=0):
 
 @pytest.mark.slow
 def test_coupled_containment_on_the_panda(panda):
-    """Containment on a 3 s pick-and-place segment of the Panda (p = 22).
+    """SPEC section 10's two-joint levels on a 3 s move of the Panda (p = 22, default box).
 
-    SPEC section 10's sample level (about 99.7 % inside) holds: measured 99.72 %. Its
-    two-joint levels for clean runs (>= 97 %) and worst violation (< 5 % of the width) do
-    not: measured 61 % and 18 %; without friction 82 % and 1.5 % (the sharp smooth sign of
-    Coulomb friction drives the worst cases). The last two asserts guard those measured
-    values; they are findings, not the contract."""
+    All 2^8 mass/payload corners (friction at a random corner each) plus 200 uniform
+    draws. Samples inside (>= 99.7 %) and worst violation (< 5 % of the width) are
+    asserted on all runs. Clean runs (>= 97 %) are asserted on the 200 uniform draws:
+    here 256 of the 456 runs are corners, against 16 of 216 where SPEC measured the
+    level, and corner runs touch the encoder band by construction, so the pooled share
+    counts corners more than it measures the bands (pooled: about 95 %, corners about
+    92 %, measured with the default box; see the closing note of issue 14).
+    With the generic REAL_ARM_BOX and a 0.01 rad/s smooth sign the same move gave 61 %
+    clean runs and a worst violation of 18 % of the width."""
     home = home_pose("panda")
     target = home + np.array([0.45, 0.4, 0.0, 0.45, 0.0, 0.0, 0.5])
     traj = rmijax.waypoint_trajectory([home, target, home], segment_time=1.5)
     bounds = rmijax.rmi(traj, panda)
     states, _ = rmijax.simulate(traj, panda, panda_true_robots(panda, 200))
     found = rmijax.containment(states, bounds)
-    assert found["runs"] == 2**8 + 200
+    draws = rmijax.containment(states[2**8 :], bounds)
+    assert found["runs"] == 2**8 + 200 and draws["runs"] == 200
     assert found["inside"] >= 0.997
-    assert found["clean_runs"] >= 0.6
-    assert found["worst"] < 0.2
+    assert found["worst"] < 0.05
+    assert draws["clean_runs"] >= 0.97
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", rmijax.SHIPPED)
+def test_default_box_runs_exact_rmi_on_the_job_motion(name):
+    """Each shipped arm's default box gives finite bands on the job's pick-and-place move
+    (at twice the job's pace); the generic REAL_ARM_BOX diverges on the iiwa14 (its wrist
+    has 0.0009 kg m^2 and no armature), which the per-arm box exists to prevent."""
+    traj = pick_and_place(home_pose(name), segment_time=0.5)
+    params = rmijax.load_robot(name, **rmijax.default_box(name))
+    bounds = rmijax.rmi(traj, params)  # raises DivergedError on a non-finite band
+    lower, upper = np.asarray(bounds.lower), np.asarray(bounds.upper)
+    assert np.all(np.isfinite(lower)) and np.all(np.isfinite(upper))
+    nominal = np.asarray(traj.x_n)
+    assert np.all(lower <= nominal + 1e-12) and np.all(nominal <= upper + 1e-12)
+    if name == "iiwa14":
+        with pytest.raises(rmijax.DivergedError):
+            rmijax.rmi(traj, rmijax.load_robot(name, **REAL_ARM_BOX))

@@ -62,7 +62,11 @@ from rmijax.robots.box import (
     uncertain_robot as uncertain_robot,
 )
 from rmijax.robots.check import ModelCheckError as ModelCheckError, check_model as check_model
-from rmijax.robots.loaders import SHIPPED as SHIPPED, load_robot as load_robot
+from rmijax.robots.loaders import (
+    SHIPPED as SHIPPED,
+    default_box as default_box,
+    load_robot as load_robot,
+)
 from rmijax.robots.model import GRAVITY as GRAVITY, RobotModel as RobotModel
 from rmijax.robots.planar import (
     paper_arm2 as paper_arm2,
@@ -119,6 +123,7 @@ __all__ = [
     "containment",
     "corner_tensor",
     "coupled_perturbation",
+    "default_box",
     "detect",
     "empirical_thresholds",
     "estimate_memory",

@@ -7,7 +7,15 @@ import numpy as np
 import pytest
 
 from rmijax.robots.box import UncertainRobot
-from rmijax.robots.loaders import SHIPPED, load_chain, load_robot
+from rmijax.robots.loaders import (
+    FRICTION_DAMPING_SHARE,
+    SHIPPED,
+    _friction_bounds,
+    default_box,
+    load_chain,
+    load_robot,
+)
+from rmijax.robots.spatial import COULOMB_VELOCITY
 from rmijax.robots.structure import LinearDynamics
 
 mujoco = pytest.importorskip("mujoco")
@@ -378,3 +386,28 @@ def test_source_errors(tmp_path):
 def test_bad_box_arguments(kwargs, message):
     with pytest.raises(ValueError, match=message):
         load_robot("panda", **kwargs)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", SHIPPED)
+def test_default_box_keeps_the_friction_error_within_a_quarter_of_the_damping(name):
+    """Per joint, half the viscous range plus half the Coulomb range over the smooth sign's
+    scale, divided by the joint's inertia, stays below a quarter of kd = 20 /s; heavy
+    joints are capped at 0.5 N m, light ones get less. The inertia here is the smallest
+    over states drawn apart from the rule's own, so a sampled minimum: 3 % slack."""
+    box = default_box(name)  # the shipped table; the rule recomputed from the file:
+    np.testing.assert_allclose(
+        box["friction"]["coulomb"][:, 1], _friction_bounds(name, 20.0, 0.25), rtol=1e-12
+    )
+    params = load_robot(name, **box)
+    viscous, coulomb = (np.asarray(box["friction"][k]) for k in ("viscous", "coulomb"))
+    assert np.all(viscous[:, 0] == 0) and np.all(coulomb[:, 0] == 0)
+    lightest = np.asarray(params.lo)
+    q = np.random.default_rng(7).uniform(-np.pi, np.pi, (1024, params.n_joints))
+    inertia = jax.vmap(lambda q: jax.numpy.diag(params.model.mass_matrix(q, lightest)))(q)
+    smallest = np.asarray(inertia).min(axis=0)
+    rate = (viscous[:, 1] / 2 + coulomb[:, 1] / 2 / COULOMB_VELOCITY) / smallest
+    assert np.all(rate <= FRICTION_DAMPING_SHARE * 20.0 * 1.03)
+    assert np.all(rate >= 0.5 * FRICTION_DAMPING_SHARE * 20.0 * (coulomb[:, 1] < 0.5))
+    assert np.all(coulomb[:, 1] <= 0.5)
+    assert box["mass"] == 0.1 and tuple(box["payload"]) == (0.0, 1.0)

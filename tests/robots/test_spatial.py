@@ -319,5 +319,7 @@ def test_jit_vmap_over_4096_pairs(dtype, rng):
 
 
 def test_smooth_sign():
-    values = np.asarray(smooth_sign(jnp.array([-1.0, -COULOMB_VELOCITY, 0.0, 0.1])))
-    np.testing.assert_allclose(values, [-1.0, -np.tanh(1.0), 0.0, np.tanh(10.0)], rtol=1e-12)
+    speed = 10 * COULOMB_VELOCITY
+    values = np.asarray(smooth_sign(jnp.array([-speed, -COULOMB_VELOCITY, 0.0, 0.5 * speed])))
+    np.testing.assert_allclose(values, [-np.tanh(10.0), -np.tanh(1.0), 0.0, np.tanh(5.0)])
+    assert COULOMB_VELOCITY == 0.1  # rad/s: the documented physical choice (Gaz et al. 2019)

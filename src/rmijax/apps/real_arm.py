@@ -1,8 +1,10 @@
 """The main job for a real arm: a pick-and-place move, bands, the fault suite, figures, report.
 
 ``rmijax --robot panda --out DIR`` (also ``iiwa14``, ``ur5e``, or a URDF/MJCF
-path) loads the arm with an uncertain box (every link mass +-10 %, a payload of
-0-1 kg at the flange, viscous and Coulomb friction on every joint), moves it
+path) loads the arm with its default uncertain box
+(:func:`~rmijax.robots.loaders.default_box`: every link mass +-10 %, a payload of
+0-1 kg at the flange, viscous and Coulomb friction on every joint, scaled to the
+joint's inertia), moves it
 through a pick-and-place-like sequence of joint-space waypoints, computes the
 bands of every output with each method, runs every fault kind on every joint
 against a true robot inside the box, and writes figures, ``report.json`` and
@@ -23,11 +25,10 @@ from rmijax.detection.suite import default_fault_suite
 from rmijax.methods.dispatch import bounds
 from rmijax.plant import simulate
 from rmijax.robots.box import UncertainRobot
-from rmijax.robots.loaders import REAL_ARM_BOX, SHIPPED, description_path, load_robot
+from rmijax.robots.loaders import SHIPPED, default_box, description_path, load_robot
 from rmijax.trajectory import Trajectory, waypoint_trajectory
 
 __all__ = [
-    "DEFAULT_BOX",
     "METHODS",
     "RealArmCase",
     "home_pose",
@@ -35,9 +36,6 @@ __all__ = [
     "real_arm_case",
     "run",
 ]
-
-DEFAULT_BOX = REAL_ARM_BOX
-"""The uncertain box of the job (:data:`rmijax.robots.loaders.REAL_ARM_BOX`)."""
 
 METHODS = ("rmi", "linearized", "empirical")
 """Band methods the job compares by default."""
@@ -104,8 +102,11 @@ class RealArmCase:
 
 
 def real_arm_case(source="panda", *, segment_time=1.0, box=None) -> RealArmCase:
-    """The job's case for ``source`` (a shipped name or a URDF/MJCF path)."""
-    params = load_robot(source, **(DEFAULT_BOX if box is None else box))
+    """The job's case for ``source`` (a shipped name or a URDF/MJCF path).
+
+    ``box``: keyword arguments of :func:`~rmijax.robots.loaders.load_robot`; default
+    :func:`~rmijax.robots.loaders.default_box` of ``source``."""
+    params = load_robot(source, **(default_box(source) if box is None else box))
     traj = pick_and_place(home_pose(source), segment_time=segment_time)
     nominal, hi = np.asarray(params.nominal), np.asarray(params.hi)
     th_true = nominal + TRUE_FRACTION * (hi - nominal)

@@ -122,7 +122,7 @@ def resolve_robot(robot) -> UncertainRobot:
     Names: ``"paper_pendulum"``, ``"paper_arm2"``, ``"preset<n>"`` (the
     ``n``-link planar preset), the real arms :func:`rmijax.load_robot` ships
     (``"panda"``, ``"iiwa14"``, ``"ur5e"``) or the path of a URDF/MJCF file,
-    loaded with the box :data:`rmijax.robots.loaders.REAL_ARM_BOX`; for another box pass your own
+    loaded with its box :func:`rmijax.robots.loaders.default_box`; for another box pass your own
     ``rmijax.load_robot(name, mass=..., payload=..., friction=...)``.
 
     Raises:
@@ -130,7 +130,7 @@ def resolve_robot(robot) -> UncertainRobot:
         TypeError: neither a name nor an UncertainRobot.
     """
     from rmijax.robots import planar
-    from rmijax.robots.loaders import REAL_ARM_BOX, SHIPPED, load_robot
+    from rmijax.robots.loaders import SHIPPED, default_box, load_robot
 
     if isinstance(robot, UncertainRobot):
         return robot
@@ -147,7 +147,7 @@ def resolve_robot(robot) -> UncertainRobot:
     if match:
         return planar.preset_arm(int(match.group(1)))
     try:
-        return load_robot(name, **REAL_ARM_BOX)
+        return load_robot(name, **default_box(name))
     except (ValueError, KeyError, FileNotFoundError) as err:
         raise ValueError(
             f"unknown robot {name!r}: {err}; give 'paper_pendulum', 'paper_arm2', "
