@@ -33,6 +33,19 @@ from _common import (  # noqa: E402
 )
 
 
+def _time_ticks(update, prepared, args):
+    """First-call (compile) seconds and the timing of ``update`` over prepared tick inputs."""
+    import jax
+
+    def tick_args(i):
+        return prepared[i % len(prepared)]
+
+    t0 = time.perf_counter()
+    jax.block_until_ready(update(*tick_args(0)))
+    compile_s = time.perf_counter() - t0
+    return compile_s, time_calls(update, tick_args, calls=args.calls, max_seconds=args.max_seconds)
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument(
@@ -103,13 +116,7 @@ def main(argv=None):
         ]
         jax.block_until_ready(prepared)
 
-        def tick_args(i, prepared=prepared):
-            return prepared[i % len(prepared)]
-
-        t0 = time.perf_counter()
-        jax.block_until_ready(update(*tick_args(0)))
-        compile_s = time.perf_counter() - t0
-        timing = time_calls(update, tick_args, calls=args.calls, max_seconds=args.max_seconds)
+        compile_s, timing = _time_ticks(update, prepared, args)
         records.append(
             {
                 "n": n,
@@ -182,13 +189,7 @@ def robot_main(args, argv):
         prepared = [(state, _desired(traj, k), readings[k]) for k in range(start, traj.n_steps + 1)]
         jax.block_until_ready(prepared)
 
-        def tick_args(i, prepared=prepared):
-            return prepared[i % len(prepared)]
-
-        t0 = time.perf_counter()
-        jax.block_until_ready(update(*tick_args(0)))
-        compile_s = time.perf_counter() - t0
-        timing = time_calls(update, tick_args, calls=args.calls, max_seconds=args.max_seconds)
+        compile_s, timing = _time_ticks(update, prepared, args)
         records.append(
             {
                 "robot": args.robot,
