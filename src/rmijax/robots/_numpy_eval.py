@@ -17,6 +17,7 @@ above that. Tested against ``jax.jit`` on the library's models and on random pro
 
 from __future__ import annotations
 
+import jax
 import numpy as np
 from jax.extend import core as _jax_core
 
@@ -330,14 +331,10 @@ def _scan(args, params):
         ys.append(y)
     if reverse:
         ys.reverse()
-    n_ys = len(jaxpr.jaxpr.outvars) - n_carry
-    stacked = [np.stack([y[j] for y in ys]) for j in range(n_ys)] if length else []
+    outs = jaxpr.jaxpr.outvars[n_carry:]
     if not length:
-        stacked = [
-            np.zeros((0,) + tuple(v.aval.shape), v.aval.dtype)
-            for v in jaxpr.jaxpr.outvars[n_carry:]
-        ]
-    return carry + stacked
+        return carry + [np.zeros((0, *v.aval.shape), v.aval.dtype) for v in outs]
+    return carry + [np.stack([y[j] for y in ys]) for j in range(len(outs))]
 
 
 def _cond(args, params):
@@ -396,11 +393,5 @@ def eval_jaxpr(jaxpr, consts, *args):
 
 def evaluate(fn, *args):
     """``fn(*args)`` (a pure JAX function of arrays) evaluated by NumPy, as a tuple."""
-    closed = _make_jaxpr(fn)(*args)
+    closed = jax.make_jaxpr(fn)(*args)
     return tuple(eval_jaxpr(closed.jaxpr, closed.consts, *args))
-
-
-def _make_jaxpr(fn):
-    import jax
-
-    return jax.make_jaxpr(fn)
