@@ -5,12 +5,17 @@ Run from the repository root (float64, CPU):
     python benchmarks/methods.py --json benchmarks/results/methods_cpu.json \\
         --plot benchmarks/results/methods_cpu.png
 
+``--methods`` keeps only some methods (default all a case runs): a new method is
+scored on its own and its file merged with the others' by ``--from-json``, which
+joins the records of one case from several files.
+
 Cases (``--cases``, default all):
 
 - ``arm2_hold_sine``, ``arm2_hold_ramp``, ``arm2_hold_composite``,
   ``arm2_slow_sine_composite``: the paper's two-joint runs (15 s);
 - ``preset2``, ``preset4``, ``preset6``: ``preset_arm(n)`` on slow_sine / sine
-  paths (10 s): every method;
+  paths (10 s): every method (``certified``'s remainder diverges at 4 and 6 links:
+  recorded as diverged, found on the run's first steps);
 - ``preset8``, ``preset16``, ``preset32``: the methods that scale
   (``rmijax.SCALABLE_METHODS``); at 16 and 32 links a shorter run (4 s, one
   onset at 2 s), 100 draws and a lighter worst-case search (one time, 3.9 s;
@@ -24,8 +29,9 @@ For each case and method: band width over the worst-case range
 containment of Monte-Carlo runs (all corners when ``K <= 4096``, plus uniform
 draws) and of the worst-case points, detection over the fault suite (every
 kind, every joint, each onset) and false alarms, and the offline cost per end
-step. Besides, ``corner_search`` against exhaustive corners on n = 1..6
-(:func:`rmijax.corner_search.corner_agreement`).
+step (``certified``, which only computes whole runs: the whole run's seconds over
+its steps, the ``cost`` column saying so). Besides, ``corner_search`` against
+exhaustive corners on n = 1..6 (:func:`rmijax.corner_search.corner_agreement`).
 """
 
 from __future__ import annotations
@@ -64,7 +70,9 @@ BIG = 16
 COLUMNS = [
     ("case", "case", "{}"),
     ("method", "method", "{}"),
+    ("status", "status", "{}"),
     ("ms_per_step", "ms/step", "{:.3g}"),
+    ("cost_basis", "cost", "{}"),
     ("enc_width_over_worst", "enc width/worst", "{:.3g}"),
     ("tach_width_over_worst", "tach width/worst", "{:.3g}"),
     ("worst_points_inside", "worst pts in", "{:.3f}"),
@@ -109,6 +117,55 @@ def build_case(name):
             timing_steps=20,
         )
     return case, methods, options, big
+
+
+def merge_cases(pieces):
+    """The case records of several ``--json`` files, one record per case name.
+
+    Records of the same case from different files (e.g. the six first methods in one
+    file, ``certified`` in another) are joined: their methods, refusals and fault rows.
+    Both must be the same case (same ``n``, ``K``, ``T``, ``dt`` and fault suite); the
+    worst-case table, which scores the width of every method, is the first file's, and
+    a later file's table must equal it (the search is seeded: same case, same table).
+
+    Raises:
+        ValueError: two records of one case disagree.
+    """
+    merged = {}
+    for record in (r for piece in pieces for r in piece):
+        name = record["case"]
+        if name not in merged:
+            merged[name] = {**record, "methods": dict(record["methods"])}
+            merged[name]["faults"] = [dict(row) for row in record.get("faults", [])]
+            for key in ("diverged", "not_supported"):
+                merged[name][key] = dict(record.get(key, {}))
+            continue
+        into = merged[name]
+        for key in ("n", "K", "T", "dt"):
+            if into[key] != record[key]:
+                raise ValueError(f"{name}: {key} differs ({into[key]} and {record[key]})")
+        clash = set(into["methods"]) & set(record["methods"])
+        if clash:
+            raise ValueError(f"{name}: method(s) {sorted(clash)} in two files")
+        if record["methods"]:
+            mine, theirs = into.get("worst_case"), record["worst_case"]
+            if mine is None:
+                into["worst_case"] = theirs
+            elif not all(
+                np.allclose(mine[k], theirs[k], rtol=1e-9, atol=0) for k in ("times", "low", "high")
+            ):
+                raise ValueError(f"{name}: the two files' worst-case tables differ")
+            if not into["faults"]:
+                into["faults"] = [dict(row) for row in record["faults"]]
+            else:
+                if [r["fault"] for r in into["faults"]] != [r["fault"] for r in record["faults"]]:
+                    raise ValueError(f"{name}: the two files ran different fault suites")
+                for row, other in zip(into["faults"], record["faults"], strict=True):
+                    row.update({m: other[m] for m in record["methods"]})
+        into["methods"].update(record["methods"])
+        for key in ("diverged", "not_supported"):
+            into[key].update(record.get(key, {}))
+    return list(merged.values())
 
 
 def agreement_rows(sizes, log):
@@ -188,6 +245,12 @@ def main(argv=None):
         "--cases", nargs="*", choices=CASES, default=list(CASES), help="none: agreement only"
     )
     parser.add_argument(
+        "--methods",
+        nargs="+",
+        choices=rmijax.METHODS,
+        help="only these methods (default: every method each case runs)",
+    )
+    parser.add_argument(
         "--agreement",
         nargs="*",
         type=int,
@@ -217,13 +280,14 @@ def main(argv=None):
         print(message, flush=True)
 
     if args.from_json:
-        results, agreement, costs, sources = [], [], [], {}
+        pieces, agreement, costs, sources = [], [], [], {}
         for path in args.from_json:
             records, piece = read_json(path)
-            results += records["cases"]
+            pieces.append(records["cases"])
             agreement += records["agreement"]
             costs += records["step_costs"]
             sources[path] = piece
+        results = merge_cases(pieces)
         # the merge's own command, and each piece's meta (its command reproduces it)
         meta = {**run_meta("benchmarks/methods.py", argv, dtype="float64"), "sources": sources}
         write_json(args.json, {"cases": results, "agreement": agreement, "step_costs": costs}, meta)
@@ -238,9 +302,15 @@ def main(argv=None):
         started = time.perf_counter()
         for name in args.cases:
             case, methods, options, cost_only = build_case(name)
+            if args.methods:
+                methods = tuple(m for m in methods if m in args.methods)
+                if not methods:
+                    log(f"[{name}] none of {args.methods} runs on this case")
+                    continue
             options.setdefault("draws", args.draws)
             results.append(compare(case, methods, log=log, **options))
-            if cost_only and case.params.n_joints in args.corner_search_cost:
+            timed = not args.methods or "corner_search" in args.methods
+            if cost_only and timed and case.params.n_joints in args.corner_search_cost:
                 cost = step_cost(case, "corner_search", end_steps=(150, 160))
                 costs.append({"case": name, "n": case.params.n_joints, **cost})
                 log(f"  corner_search: {cost['step_s']:.3g} s per end step (online, compiled)")
