@@ -37,6 +37,7 @@ exhaustive corners on n = 1..6 (:func:`rmijax.corner_search.corner_agreement`).
 from __future__ import annotations
 
 import argparse
+import os
 import pathlib
 import sys
 import time
@@ -126,7 +127,8 @@ def merge_cases(pieces):
     file, ``certified`` in another) are joined: their methods, refusals and fault rows.
     Both must be the same case (same ``n``, ``K``, ``T``, ``dt`` and fault suite); the
     worst-case table, which scores the width of every method, is the first file's, and
-    a later file's table must equal it (the search is seeded: same case, same table).
+    a later file's table must equal it to rounding (1e-9 relative, 1e-12 absolute: the
+    search is seeded, so the same case gives the same table).
 
     Raises:
         ValueError: two records of one case disagree.
@@ -152,7 +154,8 @@ def merge_cases(pieces):
             if mine is None:
                 into["worst_case"] = theirs
             elif not all(
-                np.allclose(mine[k], theirs[k], rtol=1e-9, atol=0) for k in ("times", "low", "high")
+                np.allclose(mine[k], theirs[k], rtol=1e-9, atol=1e-12)
+                for k in ("times", "low", "high")
             ):
                 raise ValueError(f"{name}: the two files' worst-case tables differ")
             if not into["faults"]:
@@ -297,6 +300,7 @@ def main(argv=None):
 
         def save():
             records = {"cases": results, "agreement": agreement, "step_costs": costs}
+            meta["load_avg"] = [round(x, 2) for x in os.getloadavg()]  # when it ended
             write_json(args.json, records, meta)
 
         started = time.perf_counter()
