@@ -202,7 +202,11 @@ def agreement_rows(sizes, log):
 
 
 def plot(results, path):
-    """One panel per quantity: cost, width over worst case, containment, latency, false alarms."""
+    """One panel per quantity: cost, width over worst case, containment, latency, false alarms.
+
+    A method refused on a case (diverged, not supported) has no bars there; the cost
+    panel writes the reason where its bar would be.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -212,7 +216,7 @@ def plot(results, path):
     cases = list(dict.fromkeys(r["case"] for r in rows))
     methods = list(dict.fromkeys(r["method"] for r in rows))
     quantities = [
-        ("ms_per_step", "offline cost, ms per end step", True),
+        ("ms_per_step", "offline cost, ms per end step (certified: whole run / steps)", True),
         ("enc_width_over_worst", "encoder band width / worst-case range", True),
         ("tach_width_over_worst", "tachometer band width / worst-case range", True),
         ("mc_inside", "Monte-Carlo samples inside", False),
@@ -229,7 +233,26 @@ def plot(results, path):
                 match = [r[key] for r in rows if r["case"] == case and r["method"] == method]
                 value = match[0] if match and match[0] is not None else np.nan
                 values.append(value + 1 if key == "false_alarms_free" else value)
-            ax.bar(x + (i - len(methods) / 2 + 0.5) * width, values, width, label=method)
+            at = x + (i - len(methods) / 2 + 0.5) * width
+            ax.bar(at, values, width, label=method)
+            if key == "ms_per_step":
+                for c, case in enumerate(cases):
+                    refused = [
+                        r["status"]
+                        for r in rows
+                        if r["case"] == case and r["method"] == method and r["status"] != "scored"
+                    ]
+                    if refused:
+                        ax.text(
+                            at[c],
+                            0.03,
+                            f"{method}: {refused[0]}",
+                            rotation=90,
+                            fontsize=7,
+                            ha="center",
+                            va="bottom",
+                            transform=ax.get_xaxis_transform(),
+                        )
         if key in ("enc_width_over_worst", "tach_width_over_worst"):
             ax.axhline(1.0, color="k", lw=0.8, ls="--")
         if log_scale:
