@@ -186,49 +186,52 @@ def test_certified_is_scored_on_its_whole_run():
     assert row["mc_inside"] == 1.0 and row["enc_width_over_worst"] >= 1.0
 
 
-def test_a_method_that_diverges_is_reported_not_scored():
+def test_a_method_that_diverges_is_reported_and_the_others_scored():
     """On a box 3x around the nominal ``certified``'s remainder diverges: the prefix probe
-    says so at the step where the whole run diverges, and nothing is simulated."""
+    says so at the step where the whole run diverges, its row says diverged, and
+    ``empirical`` is still scored on the case."""
     params = rmijax.paper_pendulum()
     nominal = np.asarray(params.nominal)
     wide = rmijax.uncertain_robot(params.model, nominal, nominal / 3, nominal * 3)
     case = _pendulum_case(wide)
-    result = compare(case, ("certified",), probe_steps=20, log=None)
+    result = compare(
+        case,
+        ("empirical", "certified"),
+        onsets=(0.4,),
+        draws=10,
+        times=[0.5],
+        worst_options=dict(random_starts=0, iterations=5),
+        probe_steps=20,
+        log=None,
+    )
     message = result["diverged"]["certified"]
     assert "found on the first 20 of 100 steps" in message
-    assert result["methods"] == {} and result["not_supported"] == {}
-    assert result["worst_case"] is None and result["faults"] == []
+    assert list(result["methods"]) == ["empirical"] and result["not_supported"] == {}
+    scored_in_faults = {"fault", "kind", "joint", "onset", "empirical"}
+    assert result["faults"] and all(set(row) == scored_in_faults for row in result["faults"])
     step = re.search(r"\(step \d+,", message).group()
     with pytest.raises(DivergedError) as whole:
         rmijax.bounds(case.traj, wide, method="certified")
     assert step in str(whole.value)  # the probe's verdict is the whole run's
-    (row,) = summary_rows([result])
-    assert (row["method"], row["status"], row["cost_basis"]) == ("certified", "diverged", "-")
-    assert math.isnan(row["ms_per_step"]) and math.isnan(row["mc_inside"])
+    rows = summary_rows([result])
+    assert [(r["method"], r["status"], r["cost_basis"]) for r in rows] == [
+        ("empirical", "scored", "end step"),
+        ("certified", "diverged", "-"),
+    ]
+    assert rows[0]["ms_per_step"] > 0 and 0.0 <= rows[0]["mc_inside"] <= 1.0  # scored
+    assert math.isnan(rows[1]["ms_per_step"]) and math.isnan(rows[1]["mc_inside"])
 
 
-def test_an_unsupported_method_is_reported_and_the_others_scored():
-    """A model without the planar structure: ``certified`` refuses it (not supported), and
-    ``empirical`` is still scored on the case."""
+def test_an_unsupported_method_is_reported_not_dropped():
+    """A model without the planar structure: ``certified`` refuses it before computing
+    anything, and the result says so; with nothing left to score nothing is simulated."""
     params = rmijax.paper_pendulum()
     model = dataclasses.replace(params.model, structure=None)  # declares nothing
     other = rmijax.uncertain_robot(model, params.nominal, params.lo, params.hi)
-    case = _pendulum_case(other, duration=0.3)
-    result = compare(
-        case,
-        ("empirical", "certified"),
-        onsets=(0.2,),
-        draws=10,
-        times=[0.2],
-        worst_options=dict(random_starts=0, iterations=5),
-        log=None,
-    )
-    assert list(result["methods"]) == ["empirical"]
+    result = compare(_pendulum_case(other, duration=0.3), ("certified",), log=None)
     assert "planar" in result["not_supported"]["certified"]
-    assert result["diverged"] == {}
-    rows = summary_rows([result])
-    assert [(r["method"], r["status"]) for r in rows] == [
-        ("empirical", "scored"),
-        ("certified", "not supported"),
-    ]
-    assert rows[0]["mc_inside"] > 0.9 and math.isnan(rows[1]["enc_width_over_worst"])
+    assert result["methods"] == {} and result["diverged"] == {}
+    assert result["worst_case"] is None and result["faults"] == []
+    (row,) = summary_rows([result])
+    assert (row["method"], row["status"]) == ("certified", "not supported")
+    assert math.isnan(row["enc_width_over_worst"]) and math.isnan(row["detected"])
