@@ -5,12 +5,17 @@ Run from the repository root (float64, CPU):
     python benchmarks/methods.py --json benchmarks/results/methods_cpu.json \\
         --plot benchmarks/results/methods_cpu.png
 
+``--methods`` keeps only some methods (default all a case runs): a new method is
+scored on its own and its file merged with the others' by ``--from-json``, which
+joins the records of one case from several files.
+
 Cases (``--cases``, default all):
 
 - ``arm2_hold_sine``, ``arm2_hold_ramp``, ``arm2_hold_composite``,
   ``arm2_slow_sine_composite``: the paper's two-joint runs (15 s);
 - ``preset2``, ``preset4``, ``preset6``: ``preset_arm(n)`` on slow_sine / sine
-  paths (10 s): every method;
+  paths (10 s): every method (``certified``'s remainder diverges at 4 and 6 links:
+  recorded as diverged, found on the run's first steps);
 - ``preset8``, ``preset16``, ``preset32``: the methods that scale
   (``rmijax.SCALABLE_METHODS``); at 16 and 32 links a shorter run (4 s, one
   onset at 2 s), 100 draws and a lighter worst-case search (one time, 3.9 s;
@@ -24,13 +29,15 @@ For each case and method: band width over the worst-case range
 containment of Monte-Carlo runs (all corners when ``K <= 4096``, plus uniform
 draws) and of the worst-case points, detection over the fault suite (every
 kind, every joint, each onset) and false alarms, and the offline cost per end
-step. Besides, ``corner_search`` against exhaustive corners on n = 1..6
-(:func:`rmijax.corner_search.corner_agreement`).
+step (``certified``, which only computes whole runs: the whole run's seconds over
+its steps, the ``cost`` column saying so). Besides, ``corner_search`` against
+exhaustive corners on n = 1..6 (:func:`rmijax.corner_search.corner_agreement`).
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import pathlib
 import sys
 import time
@@ -64,7 +71,9 @@ BIG = 16
 COLUMNS = [
     ("case", "case", "{}"),
     ("method", "method", "{}"),
+    ("status", "status", "{}"),
     ("ms_per_step", "ms/step", "{:.3g}"),
+    ("cost_basis", "cost", "{}"),
     ("enc_width_over_worst", "enc width/worst", "{:.3g}"),
     ("tach_width_over_worst", "tach width/worst", "{:.3g}"),
     ("worst_points_inside", "worst pts in", "{:.3f}"),
@@ -111,6 +120,57 @@ def build_case(name):
     return case, methods, options, big
 
 
+def merge_cases(pieces):
+    """The case records of several ``--json`` files, one record per case name.
+
+    Records of the same case from different files (e.g. the six first methods in one
+    file, ``certified`` in another) are joined: their methods, refusals and fault rows.
+    Both must be the same case (same ``n``, ``K``, ``T``, ``dt`` and fault suite); the
+    worst-case table, which scores the width of every method, is the first file's, and
+    a later file's table must equal it to rounding (1e-9 relative, 1e-12 absolute: the
+    search is seeded, so the same case gives the same table).
+
+    Raises:
+        ValueError: two records of one case disagree.
+    """
+    merged = {}
+    for record in (r for piece in pieces for r in piece):
+        name = record["case"]
+        if name not in merged:
+            merged[name] = {**record, "methods": dict(record["methods"])}
+            merged[name]["faults"] = [dict(row) for row in record.get("faults", [])]
+            for key in ("diverged", "not_supported"):
+                merged[name][key] = dict(record.get(key, {}))
+            continue
+        into = merged[name]
+        for key in ("n", "K", "T", "dt"):
+            if into[key] != record[key]:
+                raise ValueError(f"{name}: {key} differs ({into[key]} and {record[key]})")
+        clash = set(into["methods"]) & set(record["methods"])
+        if clash:
+            raise ValueError(f"{name}: method(s) {sorted(clash)} in two files")
+        if record["methods"]:
+            mine, theirs = into.get("worst_case"), record["worst_case"]
+            if mine is None:
+                into["worst_case"] = theirs
+            elif not all(
+                np.allclose(mine[k], theirs[k], rtol=1e-9, atol=1e-12)
+                for k in ("times", "low", "high")
+            ):
+                raise ValueError(f"{name}: the two files' worst-case tables differ")
+            if not into["faults"]:
+                into["faults"] = [dict(row) for row in record["faults"]]
+            else:
+                if [r["fault"] for r in into["faults"]] != [r["fault"] for r in record["faults"]]:
+                    raise ValueError(f"{name}: the two files ran different fault suites")
+                for row, other in zip(into["faults"], record["faults"], strict=True):
+                    row.update({m: other[m] for m in record["methods"]})
+        into["methods"].update(record["methods"])
+        for key in ("diverged", "not_supported"):
+            into[key].update(record.get(key, {}))
+    return list(merged.values())
+
+
 def agreement_rows(sizes, log):
     """corner_search against the exhaustive corner on ``preset_arm(n)``, both modes."""
     rows = []
@@ -142,7 +202,11 @@ def agreement_rows(sizes, log):
 
 
 def plot(results, path):
-    """One panel per quantity: cost, width over worst case, containment, latency, false alarms."""
+    """One panel per quantity: cost, width over worst case, containment, latency, false alarms.
+
+    A method refused on a case (diverged, not supported) has no bars there; the cost
+    panel writes the reason where its bar would be.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -152,7 +216,7 @@ def plot(results, path):
     cases = list(dict.fromkeys(r["case"] for r in rows))
     methods = list(dict.fromkeys(r["method"] for r in rows))
     quantities = [
-        ("ms_per_step", "offline cost, ms per end step", True),
+        ("ms_per_step", "offline cost, ms per end step (certified: whole run / steps)", True),
         ("enc_width_over_worst", "encoder band width / worst-case range", True),
         ("tach_width_over_worst", "tachometer band width / worst-case range", True),
         ("mc_inside", "Monte-Carlo samples inside", False),
@@ -169,7 +233,26 @@ def plot(results, path):
                 match = [r[key] for r in rows if r["case"] == case and r["method"] == method]
                 value = match[0] if match and match[0] is not None else np.nan
                 values.append(value + 1 if key == "false_alarms_free" else value)
-            ax.bar(x + (i - len(methods) / 2 + 0.5) * width, values, width, label=method)
+            at = x + (i - len(methods) / 2 + 0.5) * width
+            ax.bar(at, values, width, label=method)
+            if key == "ms_per_step":
+                for c, case in enumerate(cases):
+                    refused = [
+                        r["status"]
+                        for r in rows
+                        if r["case"] == case and r["method"] == method and r["status"] != "scored"
+                    ]
+                    if refused:
+                        ax.text(
+                            at[c],
+                            0.03,
+                            f"{method}: {refused[0]}",
+                            rotation=90,
+                            fontsize=7,
+                            ha="center",
+                            va="bottom",
+                            transform=ax.get_xaxis_transform(),
+                        )
         if key in ("enc_width_over_worst", "tach_width_over_worst"):
             ax.axhline(1.0, color="k", lw=0.8, ls="--")
         if log_scale:
@@ -186,6 +269,12 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument(
         "--cases", nargs="*", choices=CASES, default=list(CASES), help="none: agreement only"
+    )
+    parser.add_argument(
+        "--methods",
+        nargs="+",
+        choices=rmijax.METHODS,
+        help="only these methods (default: every method each case runs)",
     )
     parser.add_argument(
         "--agreement",
@@ -217,13 +306,14 @@ def main(argv=None):
         print(message, flush=True)
 
     if args.from_json:
-        results, agreement, costs, sources = [], [], [], {}
+        pieces, agreement, costs, sources = [], [], [], {}
         for path in args.from_json:
             records, piece = read_json(path)
-            results += records["cases"]
+            pieces.append(records["cases"])
             agreement += records["agreement"]
             costs += records["step_costs"]
             sources[path] = piece
+        results = merge_cases(pieces)
         # the merge's own command, and each piece's meta (its command reproduces it)
         meta = {**run_meta("benchmarks/methods.py", argv, dtype="float64"), "sources": sources}
         write_json(args.json, {"cases": results, "agreement": agreement, "step_costs": costs}, meta)
@@ -233,14 +323,21 @@ def main(argv=None):
 
         def save():
             records = {"cases": results, "agreement": agreement, "step_costs": costs}
+            meta["load_avg"] = [round(x, 2) for x in os.getloadavg()]  # when it ended
             write_json(args.json, records, meta)
 
         started = time.perf_counter()
         for name in args.cases:
             case, methods, options, cost_only = build_case(name)
+            if args.methods:
+                methods = tuple(m for m in methods if m in args.methods)
+                if not methods:
+                    log(f"[{name}] none of {args.methods} runs on this case")
+                    continue
             options.setdefault("draws", args.draws)
             results.append(compare(case, methods, log=log, **options))
-            if cost_only and case.params.n_joints in args.corner_search_cost:
+            timed = not args.methods or "corner_search" in args.methods
+            if cost_only and timed and case.params.n_joints in args.corner_search_cost:
                 cost = step_cost(case, "corner_search", end_steps=(150, 160))
                 costs.append({"case": name, "n": case.params.n_joints, **cost})
                 log(f"  corner_search: {cost['step_s']:.3g} s per end step (online, compiled)")

@@ -36,7 +36,15 @@ RATES_HZ = (1000, 500, 200, 100, 50, 20, 10, 5, 2, 1)
 TARGETS_MS = {1: 0.5, 2: 0.5, 3: 2.0, 4: 6.0, 6: 100.0, 8: 3000.0}
 """Per-end-step p50 targets of the performance issue (coupled, float64), in ms."""
 
-METHODS = ("rmi", "empirical", "short_window", "corner_search", "constant_corners", "linearized")
+METHODS = (
+    "rmi",
+    "empirical",
+    "short_window",
+    "corner_search",
+    "constant_corners",
+    "linearized",
+    "certified",
+)
 
 
 def _load(name):
@@ -239,13 +247,33 @@ def _step_costs():
     return {c["case"]: c for c in _load("methods_cpu.json")["results"]["step_costs"]}
 
 
-def _method_row(case, method, m):
+def _cost(m, steps):
+    """A method's offline cost per step; a whole-run method's says how it was divided."""
+    per_step = _ms(m["seconds_per_step"] * 1e3)
+    if m.get("cost_basis") == "whole_run":
+        return f"{per_step} (whole run: {m['whole_run_s']:.1f} s / {steps} steps)"
+    return per_step
+
+
+def _refusal(case, method):
+    """``"diverged at step k"`` or ``"not supported"`` for a method ``case`` refused, else None."""
+    message = case.get("diverged", {}).get(method)
+    if message is not None:
+        step = re.search(r"\(step (\d+)", message)
+        return f"diverged at step {step.group(1)}" if step else "diverged"
+    if method in case.get("not_supported", {}):
+        return "not supported"
+    return None
+
+
+def _method_row(name, case, method):
+    m = case["methods"][method]
     width = m["width_over_worst"]
     cont = m["containment"]
     return (
-        case,
+        name,
         f"`{method}`",
-        _ms(m["seconds_per_step"] * 1e3),
+        _cost(m, case["T"]),
         f"{_ratio(width['encoder']['median'])} / {_ratio(width['tachometer']['median'])}",
         _pct(m["worst_points_inside"]),
         _pct(cont["inside"], 2),
@@ -268,17 +296,24 @@ _METHOD_HEADER = (
 )
 
 
+def _case_rows(name, case):
+    """A case's rows in :data:`METHODS` order: scored methods, then a refused one's verdict."""
+    rows = []
+    for method in METHODS:
+        if method in case["methods"]:
+            rows.append(_method_row(name, case, method))
+        elif (refusal := _refusal(case, method)) is not None:
+            rows.append((name, f"`{method}`", refusal) + ("-",) * (len(_METHOD_HEADER) - 3))
+    return rows
+
+
 def readme_methods():
     """Every method at 2, 6, 8 and 16 links (``preset_arm(n)``)."""
     cases = _cases()
     rows = []
     for name in ("preset2", "preset6", "preset8", "preset16"):
-        case = cases.get(name)
-        if case is None:
-            continue
-        for method in METHODS:
-            if method in case["methods"]:
-                rows.append(_method_row(name, method, case["methods"][method]))
+        if name in cases:
+            rows += _case_rows(name, cases[name])
     return _table(_METHOD_HEADER, rows)
 
 
@@ -286,9 +321,7 @@ def comparison_full():
     """Every case and method of ``methods_cpu.json``."""
     rows = []
     for name, case in _cases().items():
-        for method in METHODS:
-            if method in case["methods"]:
-                rows.append(_method_row(name, method, case["methods"][method]))
+        rows += _case_rows(name, case)
     return _table(_METHOD_HEADER, rows)
 
 
@@ -302,11 +335,11 @@ def methods_cost():
         for name in sizes:
             m = cases[name]["methods"].get(method)
             if m is not None:
-                cells.append(_ms(m["seconds_per_step"] * 1e3))
+                cells.append(_cost(m, cases[name]["T"]))
             elif name in costs and method == "corner_search":  # single online end steps
                 cells.append(f"{_ms(costs[name]['step_s'] * 1e3)} (one end step)")
             else:
-                cells.append("not run")
+                cells.append(_refusal(cases[name], method) or "not run")
         rows.append((f"`{method}`", *cells))
     header = ("method", *(f"{cases[c]['n']} links" for c in sizes))
     return _table(header, rows)

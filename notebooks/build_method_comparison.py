@@ -4,7 +4,9 @@ Run: python notebooks/build_method_comparison.py   (needs nbformat, nbclient, ip
 
 The numbers come from ``benchmarks/results/methods_cpu.json``, written by
 ``python benchmarks/methods.py --json benchmarks/results/methods_cpu.json`` (about
-an hour on 2 cores); the notebook also computes one case live.
+an hour on 2 cores) and merged from the files its ``meta.sources`` lists (``certified``
+in ``methods_certified.json``, ``--methods certified``); the notebook also computes one
+case live.
 """
 
 import pathlib
@@ -18,11 +20,11 @@ CONCLUSIONS = (HERE / "method_comparison_conclusions.md").read_text()
 CELLS = [
     (
         "md",
-        """# Six ways to bound a robot's outputs, compared on the same work
+        """# Seven ways to bound a robot's outputs, compared on the same work
 
 Every method below answers the same question: at each step, between which values can the
 encoder and tachometer readings of a computed-torque-controlled arm lie when its masses and
-lengths are only known within intervals? `docs/methods.md` defines them; all six sit behind
+lengths are only known within intervals? `docs/methods.md` defines them; all seven sit behind
 `rmijax.bounds(traj, params, method=...)`:
 
 | method | idea | cost grows like |
@@ -33,10 +35,14 @@ lengths are only known within intervals? `docs/methods.md` defines them; all six
 | `corner_search` | RMI, extreme corner searched (gradient sign, bit flips) | `p^2` |
 | `constant_corners` | envelope of the closed loop run once per constant corner | `2^p` runs |
 | `linearized` | first-order parameter sensitivity of the window, plus a margin | `p` |
+| `certified` | whole-run Taylor model, proven remainder (planar arm) | `s^n` pieces |
 
 The judge is `rmijax.worst_case`: projected gradient ascent over constant parameters in the box
 on the true plant. Its range is *inside* the true reachable range, so a band narrower than it
-(ratio < 1) misses a robot that can exist, and a band much wider has lost sensitivity.""",
+(ratio < 1) misses a robot that can exist, and a band much wider has lost sensitivity.
+`certified` is the one method whose band is proven to hold every constant-parameter run of
+the discretised loop; it computes a whole run at once (no window), and its remainder bound
+diverges on `preset_arm(4)` and `preset_arm(6)`, where the table says so.""",
     ),
     (
         "code",
@@ -101,13 +107,17 @@ Per case and method (float64, 2-core CPU): offline cost per end step; median ban
 the worst-case range at 8 times (encoder, tachometer; < 1 means a robot that exists falls
 outside); the fraction of worst-case points inside the band; Monte-Carlo containment (all
 corners when `K <= 4096`, plus uniform draws) as samples inside and runs never outside;
-detection over the fault suite (every kind on every joint at two onsets) and false alarms.""",
+detection over the fault suite (every kind on every joint at two onsets) and false alarms.
+`certified` has no end step of its own: its `ms/step` is its whole run's seconds (second
+call, compiled) over the run's steps, which the `cost` column says; where it diverged,
+`status` says so and the scores are `nan`.""",
     ),
     ("code", """display(Markdown(markdown_table(summary_rows(results), COLUMNS)))"""),
     (
         "md",
         """## 3. One figure per quantity
-Cases on the horizontal axis; missing bars are methods that do not run at that size.""",
+Cases on the horizontal axis; missing bars are methods that do not run at that size, or
+(`certified` at 4 and 6 links) diverged there.""",
     ),
     (
         "code",

@@ -64,3 +64,34 @@ def test_a_block_without_markers_is_refused(tmp_path):
 )  # fmt: skip
 def test_real_time_rate_is_the_highest_whose_tick_exceeds_p99(p99_ms, rate):
     assert report.real_time_rate(p99_ms) == rate
+
+
+def _scored(**cost):
+    sensor = {"median": 1.02, "min": 1.0, "max": 1.1}
+    return {
+        "seconds_per_step": 0.0125,
+        **cost,
+        "width_over_worst": {"encoder": sensor, "tachometer": sensor},
+        "worst_points_inside": 1.0,
+        "containment": {"inside": 1.0, "clean_runs": 1.0, "worst": 0.0, "runs": 1016},
+        "detected": 0.93,
+    }
+
+
+def test_whole_run_cost_and_refusals_are_labelled():
+    """``certified``'s cost cell says it is a whole run over its steps; a diverged or
+    unsupported method gets a row saying so instead of disappearing."""
+    whole = _scored(cost_basis="whole_run", whole_run_s=12.5, whole_run_first_s=20.0)
+    scored = {"T": 1000, "methods": {"rmi": _scored(), "certified": whole}}
+    rows = report._case_rows("preset2", scored)
+    assert [r[1] for r in rows] == ["`rmi`", "`certified`"]
+    assert rows[0][2] == "12.5 ms"
+    assert rows[1][2] == "12.5 ms (whole run: 12.5 s / 1000 steps)"
+    assert rows[1][3] == "1.02 / 1.02" and rows[1][5] == "100.00%"
+    message = "certified bounds are not finite (step 16, joint 0 tachometer): diverged [probe]"
+    refused = {"T": 1000, "methods": {"rmi": _scored()}, "diverged": {"certified": message}}
+    rows = report._case_rows("preset4", refused)
+    assert rows[1] == ("preset4", "`certified`", "diverged at step 16", *["-"] * 6)
+    unsupported = {"T": 1000, "methods": {}, "not_supported": {"certified": "planar only"}}
+    assert report._case_rows("arm", unsupported)[0][2] == "not supported"
+    assert report._refusal(scored, "certified") is None

@@ -1,5 +1,9 @@
 """The method comparison: its pieces on small cases, and one end-to-end pendulum case."""
 
+import dataclasses
+import math
+import re
+
 import numpy as np
 import pytest
 
@@ -7,6 +11,7 @@ import rmijax
 from rmijax.apps.experiments import paper_true_parameters
 from rmijax.detection.suite import default_fault_suite
 from rmijax.evaluation.comparison import Case, _Containment, compare, prefix, summary_rows
+from rmijax.methods.base import DivergedError
 
 
 def test_prefix_bounds_equal_the_start_of_the_whole_run():
@@ -136,3 +141,97 @@ def test_pendulum_case_end_to_end():
         assert m["median_latency"] == (pytest.approx(np.median(found)) if found else None)
     rows = summary_rows([result])
     assert [r["method"] for r in rows] == list(methods)
+
+
+def _pendulum_case(params=None, duration=1.0):
+    params = params or rmijax.paper_pendulum()
+    traj = rmijax.trajectory("sine", duration=duration)
+    return Case("pendulum", params, traj, paper_true_parameters(params))
+
+
+def test_certified_is_scored_on_its_whole_run():
+    """``certified`` in the comparison: its cost is its whole run's seconds over ``T``,
+    and on the pendulum no Monte-Carlo sample or worst-case point leaves its band, which
+    is at least as wide as the worst case found and not much wider."""
+    case = _pendulum_case()
+    result = compare(
+        case,
+        ("certified",),
+        onsets=(0.4,),
+        draws=30,
+        times=[0.5, 0.9],
+        worst_options=dict(random_starts=2, iterations=10),
+        probe_steps=20,
+        log=None,
+    )
+    assert result["diverged"] == {} and result["not_supported"] == {}
+    m = result["methods"]["certified"]
+    assert m["cost_basis"] == "whole_run"
+    assert m["seconds_per_step"] == m["whole_run_s"] / case.traj.n_steps
+    assert m["whole_run_s"] > 0 and m["whole_run_first_s"] > 0
+    assert m["containment"]["runs"] == 34  # 4 corners + 30 draws
+    assert m["containment"]["inside"] == 1.0
+    assert m["containment"]["clean_runs"] == 1.0
+    assert m["containment"]["worst"] == 0.0
+    assert m["worst_points_inside"] == 1.0
+    for sensor in ("encoder", "tachometer"):
+        ratio = m["width_over_worst"][sensor]
+        assert 1.0 <= ratio["min"] <= ratio["median"] <= ratio["max"] < 1.5
+    band = rmijax.bounds(case.traj, case.params, method="certified")
+    mean_width = np.asarray(band.width).mean(axis=(0, 1))
+    np.testing.assert_allclose(m["mean_width"], mean_width, rtol=1e-12)
+    (row,) = summary_rows([result])
+    assert row["status"] == "scored" and row["cost_basis"] == "whole run / T"
+    assert row["ms_per_step"] == m["seconds_per_step"] * 1e3
+    assert row["mc_inside"] == 1.0 and row["enc_width_over_worst"] >= 1.0
+
+
+def test_a_method_that_diverges_is_reported_and_the_others_scored():
+    """On a box 3x around the nominal ``certified``'s remainder diverges: the prefix probe
+    says so at the step where the whole run diverges, its row says diverged, and
+    ``empirical`` is still scored on the case."""
+    params = rmijax.paper_pendulum()
+    nominal = np.asarray(params.nominal)
+    wide = rmijax.uncertain_robot(params.model, nominal, nominal / 3, nominal * 3)
+    case = _pendulum_case(wide)
+    result = compare(
+        case,
+        ("empirical", "certified"),
+        onsets=(0.4,),
+        draws=10,
+        times=[0.5],
+        worst_options=dict(random_starts=0, iterations=5),
+        probe_steps=20,
+        log=None,
+    )
+    message = result["diverged"]["certified"]
+    assert "found on the first 20 of 100 steps" in message
+    assert list(result["methods"]) == ["empirical"] and result["not_supported"] == {}
+    scored_in_faults = {"fault", "kind", "joint", "onset", "empirical"}
+    assert result["faults"] and all(set(row) == scored_in_faults for row in result["faults"])
+    step = re.search(r"\(step \d+,", message).group()
+    with pytest.raises(DivergedError) as whole:
+        rmijax.bounds(case.traj, wide, method="certified")
+    assert step in str(whole.value)  # the probe's verdict is the whole run's
+    rows = summary_rows([result])
+    assert [(r["method"], r["status"], r["cost_basis"]) for r in rows] == [
+        ("empirical", "scored", "end step"),
+        ("certified", "diverged", "-"),
+    ]
+    assert rows[0]["ms_per_step"] > 0 and 0.0 <= rows[0]["mc_inside"] <= 1.0  # scored
+    assert math.isnan(rows[1]["ms_per_step"]) and math.isnan(rows[1]["mc_inside"])
+
+
+def test_an_unsupported_method_is_reported_not_dropped():
+    """A model without the planar structure: ``certified`` refuses it before computing
+    anything, and the result says so; with nothing left to score nothing is simulated."""
+    params = rmijax.paper_pendulum()
+    model = dataclasses.replace(params.model, structure=None)  # declares nothing
+    other = rmijax.uncertain_robot(model, params.nominal, params.lo, params.hi)
+    result = compare(_pendulum_case(other, duration=0.3), ("certified",), log=None)
+    assert "planar" in result["not_supported"]["certified"]
+    assert result["methods"] == {} and result["diverged"] == {}
+    assert result["worst_case"] is None and result["faults"] == []
+    (row,) = summary_rows([result])
+    assert (row["method"], row["status"]) == ("certified", "not supported")
+    assert math.isnan(row["enc_width_over_worst"]) and math.isnan(row["detected"])

@@ -9,7 +9,13 @@ desired motion and the true robot of the fault runs):
   where ``K`` allows, plus uniform draws) and of the worst-case points;
 - detection: latency and false alarms over a fault suite (every kind, every joint,
   several onsets), and false alarms on the fault-free run;
-- cost: seconds per end step of the offline computation (after compilation).
+- cost: seconds per end step of the offline computation (after compilation); for a
+  method that only computes whole runs (:data:`WHOLE_RUN_METHODS`), the whole run's
+  seconds divided by its number of steps, recorded as such.
+
+A method that refuses a case (:class:`~rmijax.methods.base.DivergedError`, or
+``NotImplementedError`` for a model it does not support) is reported as diverged or
+not supported, not scored and not dropped.
 
 ``benchmarks/methods.py`` runs it over several cases and writes JSON;
 ``notebooks/method_comparison.ipynb`` shows the tables and figures.
@@ -32,10 +38,17 @@ from rmijax.plant import simulate
 from rmijax.robots.box import UncertainRobot, monte_carlo_parameters
 from rmijax.trajectory import Trajectory
 
-__all__ = ["Case", "compare", "prefix", "step_cost", "summary_rows"]
+__all__ = ["WHOLE_RUN_METHODS", "Case", "compare", "prefix", "step_cost", "summary_rows"]
 
 _CORNER_LIMIT = 4096
 """Monte-Carlo runs include every corner when ``K`` is at most this."""
+
+WHOLE_RUN_METHODS = ("certified",)
+"""Methods that compute a whole run at once (no end step of their own to time).
+
+Their bands are causal (the first ``k`` steps of a run's band are the band of the
+run's first ``k`` steps), so a divergence found on a prefix is the whole run's.
+"""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -106,13 +119,46 @@ def prefix(traj: Trajectory, steps: int) -> Trajectory:
     return dataclasses.replace(traj, **arrays)
 
 
-def _timed_bounds(case, method, readings, options, timing_steps):
-    """Bounds of ``method`` over the whole run, and seconds per end step.
+def _timed_bounds(case, method, readings, options, timing_steps, probe_steps):
+    """Bounds of ``method`` over the whole run, and how its cost was measured.
 
-    The cost is the second of two calls on the first ``timing_steps`` steps
-    (the first compiles), divided by the ``timing_steps + 1`` end steps.
+    Windowed methods: the second of two calls on the first ``timing_steps`` steps
+    (the first compiles), divided by the ``timing_steps + 1`` end steps. Methods of
+    :data:`WHOLE_RUN_METHODS`: first run on the first ``probe_steps`` steps (a
+    divergence there is the whole run's, found for a fraction of its cost), then
+    two calls on the whole run; the second, divided by the run's ``T`` steps.
+
+    Returns:
+        ``(band, cost)`` with ``cost`` a dict: ``seconds_per_step``, ``cost_basis``
+        (``"end_step"`` or ``"whole_run"``), and for whole runs ``whole_run_s``
+        (the second call) and ``whole_run_first_s`` (the first, with compilation).
+
+    Raises:
+        DivergedError: the method's bands diverged (on the probe, the message says so).
+        NotImplementedError: the method does not support the case's model.
     """
     kwargs = dict(options)
+    if method in WHOLE_RUN_METHODS:
+        if probe_steps and probe_steps < case.traj.n_steps:
+            try:
+                bounds(prefix(case.traj, probe_steps), case.params, method=method, **kwargs)
+            except DivergedError as err:
+                raise DivergedError(
+                    f"{err} [found on the first {int(probe_steps)} of {case.traj.n_steps} "
+                    "steps; the band is causal, so the whole run diverges there too]"
+                ) from err
+        seconds = []
+        for _ in range(2):
+            start = time.perf_counter()
+            band = bounds(case.traj, case.params, method=method, **kwargs)
+            jax.block_until_ready(band.upper)
+            seconds.append(time.perf_counter() - start)
+        return band, {
+            "seconds_per_step": seconds[-1] / case.traj.n_steps,
+            "cost_basis": "whole_run",
+            "whole_run_s": seconds[-1],
+            "whole_run_first_s": seconds[0],
+        }
     if method == "short_window":
         kwargs["readings"] = readings
     band = bounds(case.traj, case.params, method=method, **kwargs)
@@ -126,7 +172,7 @@ def _timed_bounds(case, method, readings, options, timing_steps):
         start = time.perf_counter()
         jax.block_until_ready(bounds(short, case.params, method=method, **kwargs).upper)
         seconds.append(time.perf_counter() - start)
-    return band, seconds[-1] / (steps + 1)
+    return band, {"seconds_per_step": seconds[-1] / (steps + 1), "cost_basis": "end_step"}
 
 
 def step_cost(case: Case, method: str, *, end_steps=(1,), window=100, **options) -> dict:
@@ -196,6 +242,7 @@ def compare(
     worst_options=None,
     max_worst_starts=16,
     timing_steps=200,
+    probe_steps=50,
     seed=0,
     chunk=256,
     log=print,
@@ -217,15 +264,23 @@ def compare(
             the worst-case search: the first this many distinct rows found
             (in the order of the runs, so corners before uniform draws).
         timing_steps: the cost is timed on the first this many steps.
+        probe_steps: methods of :data:`WHOLE_RUN_METHODS` are first run on this
+            many steps, so that a divergence costs a prefix, not a whole run
+            (None or 0: no probe).
         seed: seeds the draws.
         chunk: Monte-Carlo runs simulated at once.
         log: a callable taking progress messages, or None.
 
     Returns:
         ``{"case", "n", "K", "T", "dt", "methods": {name: {...}}, "worst_case": {...},
-        "faults": [...], "diverged": {name: message}}`` (a method that raised
-        :class:`~rmijax.methods.base.DivergedError` is reported there and not scored);
-        ``methods[name]`` has ``seconds_per_step``,
+        "faults": [...], "diverged": {name: message}, "not_supported": {name:
+        message}}`` (a method that raised :class:`~rmijax.methods.base.DivergedError`
+        or ``NotImplementedError`` is reported there and not scored; when no method
+        is left, nothing is simulated and ``worst_case`` is None and ``faults`` empty);
+        ``methods[name]`` has ``seconds_per_step``, ``cost_basis`` (``"end_step"``, or
+        ``"whole_run"`` with ``whole_run_s`` and ``whole_run_first_s``: the run's
+        seconds warm and with compilation, ``seconds_per_step`` being the warm one over
+        ``T``),
         ``width_over_worst`` (per sensor: median, min, max of band width over
         worst-case range), ``worst_points_inside``, ``containment`` (``inside``,
         ``clean_runs``, ``worst``, ``runs``), ``detected``, ``median_latency``,
@@ -249,24 +304,33 @@ def compare(
     }
 
     log(f"[{case.name}] bands")
-    bands, cost, diverged = {}, {}, {}
+    bands, cost, diverged, unsupported = {}, {}, {}, {}
     for method in methods:
         started = time.perf_counter()
         try:
             bands[method], cost[method] = _timed_bounds(
-                case, method, y_free, options.get(method, {}), timing_steps
+                case, method, y_free, options.get(method, {}), timing_steps, probe_steps
             )
         except DivergedError as err:  # the method refuses this case: say so, score the rest
             diverged[method] = str(err)
             log(f"  {method}: diverged ({err})")
             continue
+        except NotImplementedError as err:  # e.g. certified on a model it cannot evaluate
+            unsupported[method] = str(err)
+            log(f"  {method}: not supported ({err})")
+            continue
+        per = "end step" if cost[method]["cost_basis"] == "end_step" else "step (whole run / T)"
         log(
-            f"  {method}: {cost[method] * 1e3:.3f} ms per end step "
+            f"  {method}: {cost[method]['seconds_per_step'] * 1e3:.3f} ms per {per} "
             f"({time.perf_counter() - started:.1f} s with the timing)"
         )
 
-    methods = [m for m in methods if m not in diverged]
+    methods = [m for m in methods if m in bands]
     result["diverged"] = diverged
+    result["not_supported"] = unsupported
+    if not methods:  # nothing to score: no Monte-Carlo runs, worst case or faults
+        result.update(worst_case=None, faults=[])
+        return result
 
     log(f"[{case.name}] Monte-Carlo containment")
     th = monte_carlo_parameters(params, draws, seed=seed, corners=params.n_corners <= _CORNER_LIMIT)
@@ -328,7 +392,7 @@ def compare(
         detected = [v for v in latencies if v is not None]
         free = detect(y_free, bands[method])
         result["methods"][method] = {
-            "seconds_per_step": cost[method],
+            **cost[method],
             **_tightness(bands[method], table, times, traj.dt),
             "containment": counts[method].result(),
             "detected": len(detected) / max(len(fault_rows), 1),
@@ -341,17 +405,26 @@ def compare(
 
 
 def summary_rows(results):
-    """One flat row per (case, method) of :func:`compare` results, for tables."""
+    """One flat row per (case, method) of :func:`compare` results, for tables.
+
+    ``status`` is ``"scored"``, ``"diverged"`` or ``"not supported"`` (a refused
+    method's row has NaN scores); ``cost_basis`` says what ``ms_per_step`` divides:
+    ``"end step"`` (one end step timed) or ``"whole run / T"`` (a whole run's
+    seconds over its ``T`` steps).
+    """
     nan = float("nan")
     rows = []
     for result in results:
         for method, m in result["methods"].items():
+            whole = m.get("cost_basis", "end_step") == "whole_run"
             rows.append(
                 {
                     "case": result["case"],
                     "n": result["n"],
                     "method": method,
+                    "status": "scored",
                     "ms_per_step": m["seconds_per_step"] * 1e3,
+                    "cost_basis": "whole run / T" if whole else "end step",
                     "enc_width_over_worst": m["width_over_worst"]["encoder"]["median"],
                     "tach_width_over_worst": m["width_over_worst"]["tachometer"]["median"],
                     "worst_points_inside": m["worst_points_inside"],
@@ -364,4 +437,33 @@ def summary_rows(results):
                     "false_alarms_faulty": m["false_alarms_fault_runs"],
                 }
             )
+        refused = [(m, "diverged") for m in result.get("diverged", {})]
+        refused += [(m, "not supported") for m in result.get("not_supported", {})]
+        for method, status in refused:
+            rows.append(
+                {
+                    "case": result["case"],
+                    "n": result["n"],
+                    "method": method,
+                    "status": status,
+                    "cost_basis": "-",
+                    **dict.fromkeys(_SCORES, nan),
+                }
+            )
     return rows
+
+
+_SCORES = (
+    "ms_per_step",
+    "enc_width_over_worst",
+    "tach_width_over_worst",
+    "worst_points_inside",
+    "mc_inside",
+    "mc_clean_runs",
+    "mc_worst",
+    "detected",
+    "median_latency",
+    "false_alarms_free",
+    "false_alarms_faulty",
+)
+"""The numeric columns of :func:`summary_rows` (NaN in a refused method's row)."""
