@@ -27,6 +27,8 @@ import pathlib
 import re
 import sys
 
+from rmijax.methods.dispatch import METHODS
+
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "benchmarks" / "results"
 
@@ -35,16 +37,6 @@ RATES_HZ = (1000, 500, 200, 100, 50, 20, 10, 5, 2, 1)
 
 TARGETS_MS = {1: 0.5, 2: 0.5, 3: 2.0, 4: 6.0, 6: 100.0, 8: 3000.0}
 """Per-end-step p50 targets of the performance issue (coupled, float64), in ms."""
-
-METHODS = (
-    "rmi",
-    "empirical",
-    "short_window",
-    "corner_search",
-    "constant_corners",
-    "linearized",
-    "certified",
-)
 
 
 def _load(name):

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import importlib.util
+import pathlib
+
 import numpy as np
 
 import rmijax
@@ -24,3 +27,14 @@ def random_gains(rng, n):
     kp = rng.uniform(40.0, 160.0, n)
     kd = rng.uniform(12.0, 30.0, n)
     return kp, kd
+
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+
+
+def load_benchmark(name):
+    """The script ``benchmarks/<name>.py`` as a module (its ``main`` is not run)."""
+    spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module

@@ -1,21 +1,15 @@
 """benchmarks/methods.py: one case's records from several result files are joined."""
 
-import importlib.util
 import pathlib
 
 import pytest
 
+from helpers import load_benchmark
+
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 
 
-def _methods():
-    spec = importlib.util.spec_from_file_location("methods", ROOT / "benchmarks" / "methods.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-methods = _methods()
+methods = load_benchmark("methods")
 
 WORST = {"times": [1.0, 2.0], "low": [[[-1.0, -2.0]]] * 2, "high": [[[1.0, 2.0]]] * 2}
 

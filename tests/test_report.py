@@ -1,22 +1,16 @@
 """The published tables are the results files: documents match benchmarks/report.py."""
 
-import importlib.util
 import pathlib
 import shutil
 
 import pytest
 
+from helpers import load_benchmark
+
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 
 
-def _report():
-    spec = importlib.util.spec_from_file_location("report", ROOT / "benchmarks" / "report.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-report = _report()
+report = load_benchmark("report")
 
 
 def test_documents_match_results():
