@@ -1,0 +1,349 @@
+"""Why ``certified`` stops at two links: how wide its Hessian enclosure is, and what would help.
+
+``certified`` bounds the remainder of its second-order Taylor model with the
+spread of ``gv``'s Hessian (in the parameters) over the box, enclosed by interval
+2-jets (:mod:`rmijax._intervals`). On ``preset_arm(4)`` and ``preset_arm(6)`` the
+remainder diverges within the first 0.2 s. This script measures, at the start of
+the run (state ``x_d(0)``, known exactly, so only the parameter box is uncertain),
+per joint and in rad/s^2:
+
+- ``first``: ``sum_a |dgv/dth_a| r_a`` at the nominal (the first-order effect);
+- ``second``: ``sum_ab |H_ab(th_n)| r_a r_b`` (what the Taylor model carries);
+- ``true``: ``sum_ab max_th |H_ab(th) - H_ab(th_n)| r_a r_b`` over all corners (up to
+  4096) and 300 uniform draws: a *lower* bound of the quantity the certificate must
+  bound (autodiff Hessians of the model's own ``M`` and ``h``);
+- ``interval``: the same with the enclosure ``certified`` uses today;
+- ``affine``: the same with a prototype *affine arithmetic* backend for the same jet
+  formulas (numpy, written here; float rounding is **not** bounded, so this is a
+  measurement of the dependency loss, not a certificate).
+
+at the full box and at half and a quarter of it (what splitting the box buys).
+Second, the induction's sensitivity to that enclosure: ``certified_bounds`` on
+``preset_arm(4)`` (1 s; one piece, and each mass range in 2 parts: 16 pieces) with
+``remainder_scale`` s = 1, 0.1, 0.01 (and 0.001 unsplit)
+(the remainder's input multiplied by s; anything below 1 voids the guarantee and is
+used here only to ask how much tighter the enclosure would have to be): the step at
+which it diverges, or the largest remainder against the first-order range.
+
+Run from the repository root (a few minutes on 2 cores):
+
+    python benchmarks/certified_enclosure.py --json benchmarks/results/certified_enclosure_cpu.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import pathlib
+import re
+import sys
+import time
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(pathlib.Path(__file__).parent))
+from _common import run_meta, table, write_json  # noqa: E402
+
+import rmijax  # noqa: E402
+from rmijax._intervals import Interval, Jet  # noqa: E402
+from rmijax.methods.base import DivergedError  # noqa: E402
+from rmijax.methods.certified import (  # noqa: E402
+    _evaluate,
+    certified_bounds,
+    planar_perturbation_jets,
+)
+
+
+# --------------------------------------------------------------------------
+# A prototype affine-arithmetic backend (measurement only: no rounding bounds)
+# --------------------------------------------------------------------------
+class Affine:
+    """``c + sum_i a_i eps_i + e [-1, 1]`` elementwise, ``eps_i`` in [-1, 1] shared.
+
+    Keeps first-order dependencies between quantities that interval arithmetic
+    forgets (each mass enters the articulated solve many times). Float rounding is
+    not accounted for: a prototype to measure the enclosure, not to certify.
+    """
+
+    __array_priority__ = 1000
+
+    def __init__(self, c, a, e):
+        self.c, self.a, self.e = (np.asarray(v, float) for v in (c, a, e))
+
+    @staticmethod
+    def of(x, k):
+        if isinstance(x, Affine):
+            return x
+        x = np.asarray(x, float)
+        return Affine(x, np.zeros(x.shape + (k,)), np.zeros(x.shape))
+
+    @property
+    def k(self):
+        return self.a.shape[-1]
+
+    def rad(self):
+        return np.sum(np.abs(self.a), -1) + self.e
+
+    def bounds(self):
+        r = self.rad()
+        return self.c - r, self.c + r
+
+    def __getitem__(self, i):
+        return Affine(self.c[i], self.a[i], self.e[i])
+
+    def __add__(self, o):
+        o = Affine.of(o, self.k)
+        return Affine(self.c + o.c, self.a + o.a, self.e + o.e)
+
+    __radd__ = __add__
+
+    def __neg__(self):
+        return Affine(-self.c, -self.a, self.e)
+
+    def __sub__(self, o):
+        return self + (-Affine.of(o, self.k))
+
+    def __rsub__(self, o):
+        return Affine.of(o, self.k) - self
+
+    def __mul__(self, o):
+        if not isinstance(o, Affine):
+            o = np.asarray(o, float)
+            return Affine(self.c * o, self.a * o[..., None], self.e * np.abs(o))
+        a = self.a * o.c[..., None] + o.a * self.c[..., None]
+        e = np.abs(self.c) * o.e + np.abs(o.c) * self.e + self.rad() * o.rad()
+        return Affine(self.c * o.c, a, e)
+
+    __rmul__ = __mul__
+
+    def __truediv__(self, o):
+        return self * _affine_recip(Affine.of(o, self.k))
+
+    def __rtruediv__(self, o):
+        return Affine.of(o, self.k) * _affine_recip(self)
+
+
+def _affine_recip(x):
+    """Min-range linearisation of ``1/x`` (convex on a range that excludes 0)."""
+    lo, hi = x.bounds()
+    negative = hi < 0
+    small, large = np.where(negative, -hi, lo), np.where(negative, -lo, hi)
+    sign = np.where(negative, -1.0, 1.0)
+    slope = -1.0 / large**2
+    at_small, at_large = 1.0 / small - slope * small, 1.0 / large - slope * large
+    offset, error = 0.5 * (at_small + at_large), 0.5 * np.abs(at_small - at_large)
+    error = np.where((lo > 0) | (hi < 0), error, np.inf)
+    return Affine(slope * x.c + sign * offset, slope[..., None] * x.a, np.abs(slope) * x.e + error)
+
+
+def _affine_sqr(x):
+    r = x.rad()
+    return Affine(x.c**2 + 0.5 * r**2, 2 * x.c[..., None] * x.a, 2 * np.abs(x.c) * x.e + 0.5 * r**2)
+
+
+def _affine_trig(x, fn, slope_fn):
+    slope = slope_fn(x.c)
+    return Affine(fn(x.c), slope[..., None] * x.a, np.abs(slope) * x.e + 0.5 * x.rad() ** 2)
+
+
+class AffineBackend:
+    """The operations :class:`rmijax._intervals.Jet` needs, on :class:`Affine` arrays."""
+
+    def __init__(self, k):
+        self.k = k
+
+    sin = staticmethod(lambda x: _affine_trig(x, np.sin, np.cos))
+    cos = staticmethod(lambda x: _affine_trig(x, np.cos, lambda c: -np.sin(c)))
+    recip = staticmethod(_affine_recip)
+    sqr = staticmethod(_affine_sqr)
+
+    @staticmethod
+    def is_interval(x):
+        return isinstance(x, Affine)
+
+    def zeros(self, shape, like=None):
+        return Affine.of(np.zeros(shape), self.k)
+
+    @staticmethod
+    def outer(a, b):
+        return a[:, None] * b[None, :]
+
+    def point(self, value):
+        return Affine.of(value, self.k)
+
+
+# --------------------------------------------------------------------------
+# The measurements
+# --------------------------------------------------------------------------
+def _start(n):
+    params = rmijax.preset_arm(n)
+    traj = rmijax.trajectory(["sine"] * n, duration=1.0)
+    return params, traj
+
+
+def _gv_function(params, traj):
+    model, nominal = params.model, jnp.asarray(params.nominal)
+    x, u, kp, kd = traj.x_n[0], traj.u_d[0], traj.kp, traj.kd
+
+    def gv(th):
+        q, qd = x[:, 0], x[:, 1]
+        v = u - kd * qd - kp * q
+        tau = model.mass_matrix(q, nominal) @ v + model.bias(q, qd, nominal)
+        return jnp.linalg.solve(model.mass_matrix(q, th), tau - model.bias(q, qd, th)) - v
+
+    return gv
+
+
+def _interval_hessian(params, traj, lo, hi):
+    n, p = params.n_joints, params.n_params
+    consts = dict(nominal=params.nominal, u=traj.u_d[0], kp=traj.kp, kd=traj.kd)
+    _, _, hessian = _evaluate(
+        Interval(traj.x_n[0]),
+        Interval(jnp.zeros((n, 2, p))),
+        jnp.zeros((n, 2, p, p)),
+        Interval(jnp.asarray(lo), jnp.asarray(hi)),
+        None,
+        consts,
+    )
+    return np.asarray(hessian.lo)[:, :p, :p], np.asarray(hessian.hi)[:, :p, :p]
+
+
+def _affine_hessian(params, traj, lo, hi):
+    n, p = params.n_joints, params.n_params
+    backend = AffineBackend(p)
+    x, u = np.asarray(traj.x_n[0]), np.asarray(traj.u_d[0])
+    kp, kd = np.asarray(traj.kp), np.asarray(traj.kd)
+
+    def constant(value):
+        return Jet(backend.point(value), backend.zeros((p,)), backend.zeros((p, p)), backend)
+
+    q = [constant(x[i, 0]) for i in range(n)]
+    qd = [constant(x[i, 1]) for i in range(n)]
+    centre, radius = 0.5 * (lo + hi), 0.5 * (hi - lo)
+    th = []
+    for b in range(p):
+        th.append(
+            Jet(
+                Affine(centre[b], np.eye(p)[b] * radius[b], 0.0),
+                backend.point(np.eye(p)[b]),
+                backend.zeros((p, p)),
+                backend,
+            )
+        )
+    points = [[backend.point(v) for v in values] for values in (params.nominal, u, kp, kd)]
+    gv = planar_perturbation_jets(q, qd, th, *points)
+    return np.stack([j.h.bounds()[0] for j in gv]), np.stack([j.h.bounds()[1] for j in gv])
+
+
+def enclosure_row(n, fraction, draws=300, seed=0):
+    params, traj = _start(n)
+    nominal = np.asarray(params.nominal)
+    lo = nominal + (np.asarray(params.lo) - nominal) * fraction
+    hi = nominal + (np.asarray(params.hi) - nominal) * fraction
+    radius = 0.5 * (hi - lo)
+    gv = _gv_function(params, traj)
+    hessian = jax.jit(jax.vmap(jax.hessian(gv)))
+    centre_h = np.asarray(jax.hessian(gv)(jnp.asarray(nominal)))
+    corners = np.asarray(params.corners)[:4096]
+    corners = nominal + (corners - nominal) * fraction
+    uniform = lo + (hi - lo) * np.random.default_rng(seed).uniform(size=(draws, lo.size))
+    samples = np.concatenate([corners, uniform])
+    deviation = np.max(np.abs(np.asarray(hessian(jnp.asarray(samples))) - centre_h), axis=0)
+
+    def weighted(spread):
+        return np.einsum("iab,a,b->i", spread, radius, radius)
+
+    def spread_of(bounds):
+        low, high = bounds
+        return np.maximum(high - centre_h, centre_h - low)
+
+    interval = weighted(spread_of(_interval_hessian(params, traj, lo, hi)))
+    start = time.perf_counter()
+    affine = weighted(spread_of(_affine_hessian(params, traj, lo, hi)))
+    affine_seconds = time.perf_counter() - start
+    true = weighted(deviation)
+    first = np.abs(np.asarray(jax.jacfwd(gv)(jnp.asarray(nominal)))) @ radius
+    return dict(
+        links=n,
+        box_fraction=fraction,
+        samples=int(samples.shape[0]),
+        first=first.tolist(),
+        second=weighted(np.abs(centre_h)).tolist(),
+        true=true.tolist(),
+        interval=interval.tolist(),
+        affine=affine.tolist(),
+        interval_over_true_max=float(np.max(interval / true)),
+        affine_over_true_max=float(np.max(affine / true)),
+        affine_seconds=affine_seconds,
+    )
+
+
+def scale_row(splits, scale, duration):
+    """``certified_bounds`` on ``preset_arm(4)`` with the remainder's input times ``scale``."""
+    params, _ = _start(4)
+    traj = rmijax.trajectory(["sine"] * 4, duration=duration)
+    row = dict(links=4, splits=splits, pieces=splits**4, duration=duration, remainder_scale=scale)
+    try:
+        _, cert = certified_bounds(traj, params, splits=splits, remainder_scale=scale)
+    except DivergedError as error:
+        step = int(re.search(r"step (\d+)", str(error)).group(1))
+        return row | dict(diverged_at_step=step, diverged_at_s=step * traj.dt)
+    radius = 0.5 * (np.asarray(cert.hi) - np.asarray(cert.lo))  # (P, p)
+    first = np.einsum("Pkip,Pp->ki", np.abs(np.asarray(cert.sens)[:, :, :, 0, :]), radius)
+    remainder = np.max(np.asarray(cert.remainder)[:, :, :, 0], axis=0)  # (T+1, n) encoder
+    return row | dict(
+        diverged_at_step=None,
+        max_encoder_remainder=np.max(remainder, axis=0).tolist(),
+        max_first_order_range=np.max(first, axis=0).tolist(),
+    )
+
+
+ENCLOSURE_COLUMNS = [
+    ("links", "n", "{:>2d}"),
+    ("box_fraction", "box", "{:>5.2f}"),
+    ("first", "first (max)", "{:>11.3g}"),
+    ("true", "true (max)", "{:>10.3g}"),
+    ("interval", "interval (max)", "{:>14.3g}"),
+    ("affine", "affine (max)", "{:>12.3g}"),
+    ("interval_over_true_max", "interval/true", "{:>13.1f}"),
+    ("affine_over_true_max", "affine/true", "{:>11.1f}"),
+]
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--links", type=int, nargs="+", default=[2, 4, 6])
+    parser.add_argument("--fractions", type=float, nargs="+", default=[1.0, 0.5, 0.25])
+    parser.add_argument(
+        "--scale-runs",
+        nargs="+",
+        default=["1:1", "1:0.1", "1:0.01", "1:0.001", "2:1", "2:0.1", "2:0.01"],
+        help="splits:remainder_scale runs of preset_arm(4)",
+    )
+    parser.add_argument("--duration", type=float, default=1.0, help="s, the scale runs")
+    parser.add_argument("--json", default=None, help="write results here")
+    args = parser.parse_args(argv)
+    meta = run_meta(__file__, argv, dtype="float64")
+    rows = []
+    for n in args.links:
+        for fraction in args.fractions:
+            rows.append(enclosure_row(n, fraction))
+            print(f"n={n} box x{fraction}: done", flush=True)
+    shown = [{k: (max(v) if isinstance(v, list) else v) for k, v in row.items()} for row in rows]
+    print(table(shown, ENCLOSURE_COLUMNS))
+    scales = []
+    for run in args.scale_runs:
+        splits, scale = run.split(":")
+        scales.append(scale_row(int(splits), float(scale), args.duration))
+    for row in scales:
+        print(row, flush=True)
+    if args.json:
+        write_json(args.json, dict(enclosure=rows, remainder_scale=scales), meta)
+
+
+if __name__ == "__main__":
+    main()
