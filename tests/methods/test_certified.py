@@ -143,13 +143,59 @@ def test_zero_width_box_gives_the_nominal(pendulum):
     np.testing.assert_allclose(bounds.upper, traj.x_n, atol=1e-12)
 
 
-def test_one_parameter_against_a_dense_grid(pendulum):
-    """Known answer: mass uncertain only; the true range from a dense grid plus a Lipschitz
-    margin (grid spacing times the largest difference quotient) must lie inside the band,
-    and the band may exceed the grid's range by little."""
+@pytest.fixture(scope="module")
+def mass_only(pendulum):
+    """The pendulum with its mass in [9, 11] kg and its length certain (1 m)."""
     traj, params, _, _ = pendulum
     box = params.with_box(lo=jnp.array([9.0, 1.0]), hi=jnp.array([11.0, 1.0]))
     bounds, _ = certified_bounds(traj, box, splits=2)
+    return traj, box, bounds
+
+
+def test_first_steps_against_their_exact_range(mass_only):
+    """Known answer in closed form: from ``x_d(0)`` the first step's velocity and the
+    second step's angle are affine in ``gv(x_0; m) = (m_n / m - 1)(v_0 + g cos(q_0) / l)``
+    (``v_0`` the servo command), which is monotone in ``m``: their exact range over
+    ``[9, 11]`` is that of the two ends, evaluated here in 60-digit arithmetic from the
+    float64 data. The band must hold it and be at most 1 % wider."""
+    mpmath = pytest.importorskip("mpmath")
+    traj, box, bounds = mass_only
+    with mpmath.workdps(60):
+        _check_first_steps(mpmath, traj, box, bounds)
+
+
+def _check_first_steps(mp, traj, box, bounds):
+    exact = lambda value: mp.mpf(float(value))  # noqa: E731  (the float64 data as exact reals)
+    q0, qd0 = (exact(v) for v in np.asarray(traj.x_n)[0, 0])
+    u0, kp, kd = exact(traj.u_d[0, 0]), exact(traj.kp[0]), exact(traj.kd[0])
+    dt, nominal, length = exact(traj.dt), exact(box.nominal[0]), exact(box.nominal[1])
+    v0 = u0 - kd * qd0 - kp * q0
+
+    def velocity_1(mass):
+        return qd0 + dt * (v0 + (nominal / mass - 1) * (v0 + exact(9.81) * mp.cos(q0) / length))
+
+    def angle_2(mass):
+        return q0 + dt * qd0 + dt * velocity_1(mass)
+
+    ends = [exact(9.0), exact(11.0)]
+    states = np.asarray(rmijax.simulate(traj, box, np.array([[9.0, 1.0], [11.0, 1.0]]))[0])
+    for mass, state in zip(ends, states, strict=True):  # the closed form is the loop
+        assert abs(float(velocity_1(mass)) - state[1, 0, 1]) < 1e-13
+        assert abs(float(angle_2(mass)) - state[2, 0, 0]) < 1e-13
+    lower, upper = np.asarray(bounds.lower), np.asarray(bounds.upper)
+    for (step, sensor), value in (((1, 1), velocity_1), ((2, 0), angle_2)):
+        low, high = sorted(value(m) for m in ends)
+        assert mp.mpf(float(lower[step, 0, sensor])) <= low
+        assert high <= mp.mpf(float(upper[step, 0, sensor]))
+        width = upper[step, 0, sensor] - lower[step, 0, sensor]
+        assert width <= 1.01 * float(high - low)
+
+
+def test_one_parameter_against_a_dense_grid(mass_only):
+    """Known answer: mass uncertain only; the true range from a dense grid plus a Lipschitz
+    margin (grid spacing times the largest difference quotient) must lie inside the band,
+    and the band may exceed the grid's range by little."""
+    traj, box, bounds = mass_only
     masses = np.linspace(9.0, 11.0, 401)
     grid = np.stack([masses, np.ones_like(masses)], -1)
     states = np.asarray(rmijax.simulate(traj, box, grid)[0])  # (401, T+1, 1, 2)
@@ -275,3 +321,33 @@ def test_perturbation_jets_equal_the_model_at_a_point(n):
     expected = _planar_gv(th, np.asarray(params.nominal), q, qd, u, kp, kd)
     assert np.all(upper - lower < 1e-8)
     np.testing.assert_allclose(0.5 * (lower + upper), expected, rtol=1e-10, atol=1e-10)
+
+
+def test_polynomial_range_is_exact_for_the_linear_part():
+    """Known answer for the range step: a band linear in ``th`` (``Q = 0``) is exactly
+    ``sum_b [min, max](s_b lo_b, s_b hi_b)`` (to rounding), and a separable quadratic's
+    range (each ``s_b d_b + 1/2 Q_bb d_b^2`` over its interval, vertex included) is
+    attained, up to rounding, by a dense grid."""
+    from rmijax.methods.certified import _poly_range
+
+    rng = np.random.default_rng(3)
+    p = 5
+    sens = rng.normal(size=(40, p))
+    d_lo, d_hi = -rng.uniform(0.1, 1.0, p), rng.uniform(0.1, 1.0, p)
+    low, high = (np.asarray(v) for v in _poly_range(sens, np.zeros((40, p, p)), d_lo, d_hi))
+    exact_low = np.sum(np.minimum(sens * d_lo, sens * d_hi), -1)
+    exact_high = np.sum(np.maximum(sens * d_lo, sens * d_hi), -1)
+    assert np.all(low <= exact_low) and np.all(exact_high <= high)
+    np.testing.assert_allclose(low, exact_low, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(high, exact_high, rtol=0, atol=1e-13)
+    diag = rng.normal(size=(40, p)) * 4.0  # vertices inside the box for many rows
+    sens2 = np.einsum("kb,bc->kbc", diag, np.eye(p))
+    low, high = (np.asarray(v) for v in _poly_range(sens, sens2, d_lo, d_hi))
+    grid = np.linspace(0.0, 1.0, 20001)
+    points = d_lo[:, None] + (d_hi - d_lo)[:, None] * grid  # (p, G)
+    values = sens[:, :, None] * points + 0.5 * diag[:, :, None] * points**2  # (40, p, G)
+    grid_low, grid_high = values.min(-1).sum(-1), values.max(-1).sum(-1)
+    assert np.all(low <= grid_low) and np.all(grid_high <= high)
+    spacing = np.max(np.abs(np.diff(values, axis=-1)), axis=-1).sum(-1)  # grid's miss
+    assert np.all(grid_low - low <= spacing + 1e-12)
+    assert np.all(high - grid_high <= spacing + 1e-12)
