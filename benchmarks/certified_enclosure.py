@@ -252,7 +252,10 @@ def enclosure_row(n, fraction, draws=300, seed=0):
     corners = nominal + (corners - nominal) * fraction
     uniform = lo + (hi - lo) * np.random.default_rng(seed).uniform(size=(draws, lo.size))
     samples = np.concatenate([corners, uniform])
-    deviation = np.max(np.abs(np.asarray(hessian(jnp.asarray(samples))) - centre_h), axis=0)
+    deviation = np.zeros_like(centre_h)
+    for chunk in np.array_split(samples, -(-len(samples) // 256)):  # (one big batch hung XLA)
+        values = np.asarray(jax.block_until_ready(hessian(jnp.asarray(chunk))))
+        deviation = np.maximum(deviation, np.max(np.abs(values - centre_h), axis=0))
 
     def weighted(spread):
         return np.einsum("iab,a,b->i", spread, radius, radius)
