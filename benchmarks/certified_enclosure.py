@@ -296,7 +296,8 @@ def scale_row(splits, scale, duration):
         step = int(re.search(r"step (\d+)", str(error)).group(1))
         return row | dict(diverged_at_step=step, diverged_at_s=step * traj.dt)
     radius = 0.5 * (np.asarray(cert.hi) - np.asarray(cert.lo))  # (P, p)
-    first = np.einsum("Pkip,Pp->ki", np.abs(np.asarray(cert.sens)[:, :, :, 0, :]), radius)
+    sens = np.abs(np.asarray(cert.sens)[:, :, :, 0, :])  # (P, T+1, n, p) encoder
+    first = np.max(np.einsum("Pkip,Pp->Pki", sens, radius), axis=0)  # the widest piece
     remainder = np.max(np.asarray(cert.remainder)[:, :, :, 0], axis=0)  # (T+1, n) encoder
     return row | dict(
         diverged_at_step=None,
