@@ -331,7 +331,7 @@ def main(argv=None):
     parser.add_argument("--duration", type=float, default=1.0, help="s, the scale runs")
     parser.add_argument("--json", default=None, help="write results here")
     args = parser.parse_args(argv)
-    meta = run_meta(__file__, argv, dtype="float64")
+    meta = run_meta("benchmarks/certified_enclosure.py", argv, dtype="float64")
     rows = []
     for n in args.links:
         for fraction in args.fractions:
