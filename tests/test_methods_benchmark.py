@@ -1,13 +1,8 @@
 """benchmarks/methods.py: one case's records from several result files are joined."""
 
-import pathlib
-
 import pytest
 
 from helpers import load_benchmark
-
-ROOT = pathlib.Path(__file__).resolve().parent.parent
-
 
 methods = load_benchmark("methods")
 

@@ -1,14 +1,10 @@
 """The published tables are the results files: documents match benchmarks/report.py."""
 
-import pathlib
 import shutil
 
 import pytest
 
-from helpers import load_benchmark
-
-ROOT = pathlib.Path(__file__).resolve().parent.parent
-
+from helpers import ROOT, load_benchmark
 
 report = load_benchmark("report")
 
