@@ -6,8 +6,9 @@ Run from the repository root (float64, CPU):
 
 For each shipped arm (loaded with mass scales, a payload and both friction
 kinds, so ``p = 3n + 1``), one ``jit(vmap)`` over ``--batch`` (state,
-parameter) pairs computes ``M`` and ``h`` together; another computes
-``terms(q, qd)`` (``M0, M_b (p, n, n), h0, h_b (p, n)``) for the same states.
+parameter) pairs computes ``M`` and ``h`` together; another computes the linear
+terms (``M0, M_b (p, n, n), h0, h_b (p, n)`` per state) for the same states in the form
+the exact search calls, ``terms_tracks_last`` (all states at once, states last).
 Compile time is the first call; the throughput is ``batch / median`` of
 ``--calls`` calls after one warm-up call (p99 reported too).
 """
@@ -61,7 +62,7 @@ def measure(name, batch, calls, seed=0):
     lo, hi = np.asarray(robot.lo), np.asarray(robot.hi)
     th = lo + (hi - lo) * rng.uniform(size=(batch, lo.size))
     both = jax.jit(jax.vmap(lambda q, qd, th: (model.mass_matrix(q, th), model.bias(q, qd, th))))
-    terms = jax.jit(jax.vmap(model.structure.terms))
+    terms = jax.jit(lambda q, qd: model.structure.terms_tracks_last(q.T, qd.T))
     compile_s = _compiled(both, (q, qd, th))
     timing = time_calls(both, lambda i: (q, qd, th), calls=calls)
     terms_compile_s = _compiled(terms, (q, qd))

@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["ldl_factor", "ldl_solve", "reciprocal"]
+__all__ = ["ldl_factor", "ldl_solve", "materialise", "reciprocal"]
 
 _SEED = {8: (np.int64(0x7FDE623822FC16E6), 5), 4: (np.int32(0x7EF311C3), 4)}
 """Per item size: the bit-trick constant of a reciprocal's seed and the Newton steps."""
@@ -81,3 +81,22 @@ def ldl_solve(lower, inv_diag, rhs):
             s = s - lower[k][i] * x[k]
         x[i] = s
     return x
+
+
+def materialise(arrays):
+    """Materialise arrays once, in one kernel: a variadic max-reduction of each over a
+    broadcast leading axis of length 2 (exact).
+
+    XLA's CPU backend has no multi-output loop fusion and fuses cheap producers into
+    every consumer; a variadic reduction computes all its operands in one loop and is
+    not fused into its consumers, so the arrays' common work runs once.
+    """
+    if not arrays:
+        return []
+    shape = jnp.broadcast_shapes(*(a.shape for a in arrays))
+    wide = tuple(jnp.broadcast_to(a, (2, *shape)) for a in arrays)
+    init = tuple(jnp.array(-jnp.inf, a.dtype) for a in arrays)
+    out = jax.lax.reduce(
+        wide, init, lambda x, y: tuple(jnp.maximum(a, b) for a, b in zip(x, y, strict=True)), (0,)
+    )
+    return list(out)

@@ -204,16 +204,21 @@ def arm3_case(tmp_path_factory):
     return params, traj, rmijax.rmi(traj, params, window=12, search="enumerate")
 
 
-@pytest.mark.parametrize("declared", ["chain", "dense", "dense_bias"])
+@pytest.mark.parametrize("declared", ["chain", "chain_vmap", "dense", "dense_bias"])
 def test_real_arm_search_equals_enumeration(declared, arm3_case):
     """load_robot's LinearDynamics search equals enumeration in coupled mode, windows
     starting at rest and zero costate weights at the last step included (exact ties),
-    also when the model declares less (no ``reach``, no ``affine_joints``)."""
+    also when the model declares less (no batch terms, no ``reach``, no
+    ``affine_joints``)."""
     params, traj, enumerated = arm3_case
     structure = params.model.structure
     assert structure.reach == (0, 1, 2, 2, 0, 1, 2, 0, 1, 2)
     if declared != "chain":  # the searches for models that promise less
-        keep = dict(reach=None) if declared == "dense" else dict(reach=None, affine_joints=None)
+        keep = {
+            "chain_vmap": dict(terms_tracks_last=None),  # terms of one state, by vmap
+            "dense": dict(reach=None),
+            "dense_bias": dict(reach=None, affine_joints=None),
+        }[declared]
         model = dataclasses.replace(params.model, structure=dataclasses.replace(structure, **keep))
         params = rmijax.uncertain_robot(model, params.nominal, params.lo, params.hi)
     structured = rmijax.rmi(traj, params, window=12)

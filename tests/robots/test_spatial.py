@@ -256,6 +256,29 @@ def test_terms_reassemble_mass_matrix_and_bias(name, tmp_path, rng):
         np.testing.assert_array_equal(np.delete(np.asarray(bias_b[:, b]), joint, axis=1), 0.0)
 
 
+@pytest.mark.parametrize("name", ["panda", "random"])
+def test_terms_of_many_tracks_equal_terms_of_each(name, tmp_path, rng):
+    """``terms_tracks_last`` (the coupled search's batch form, tracks on the last axis)
+    equals ``terms`` state by state, for prismatic joints too."""
+    if name == "random":
+        path = tmp_path / "chain.urdf"
+        path.write_text(random_chain_urdf(rng, 7))
+        name = path
+    chain = load_chain(name)
+    n = chain.n_joints
+    dynamics = spatial_dynamics(
+        chain, payload=Payload(n - 1, np.array([0.0, 0.05, 0.1])), friction=("viscous", "coulomb")
+    )
+    tracks = 9
+    q, qd = rng.uniform(-np.pi, np.pi, (tracks, n)), rng.normal(size=(tracks, n))
+    each = jax.jit(jax.vmap(dynamics.terms))(q, qd)
+    many = jax.jit(dynamics.terms_tracks_last)(q.T, qd.T)
+    for one, all_ in zip(each, many, strict=True):
+        assert all_.shape == one.shape[1:] + (tracks,)
+        scale = float(np.max(np.abs(one))) or 1.0
+        np.testing.assert_allclose(np.moveaxis(np.asarray(all_), -1, 0), one, atol=1e-14 * scale)
+
+
 @pytest.mark.parametrize("name", SHIPPED)
 def test_mass_matrix_spd_and_passivity(name, rng):
     """M = M' > 0, and Mdot - 2C is skew with C = (1/2) dh/dqd (Christoffel form)."""

@@ -228,14 +228,16 @@ class LinearChooser(StructuredChooser):
         affine_joints: for each affine parameter the joint whose bias it alone
             enters, or None (see :class:`LinearDynamics`).
         reach: per parameter the last joint its terms touch, or None.
+        terms_tracks_last: the terms of many states, tracks last, or None.
     """
 
     affine_joints: tuple[int, ...] | None = None
     reach: tuple[int, ...] | None = None
+    terms_tracks_last: Callable | None = None
 
     def coupled_step(self, states, u, weights, onehots, nominal, lo, hi, kp, kd, dt):
         return linear_search.coupled_window_step(
-            self.terms,
+            self.terms_tracks_last or _tracks_last(self.terms),
             self.enumerated,
             self.affine,
             self.affine_joints,
@@ -251,6 +253,15 @@ class LinearChooser(StructuredChooser):
             kd,
             dt,
         )
+
+
+def _tracks_last(terms):
+    """``terms`` of one state as a function of ``T`` states, tracks last (by ``vmap``)."""
+
+    def batched(q, qd):
+        return jax.vmap(terms, in_axes=1, out_axes=-1)(q, qd)
+
+    return batched
 
 
 def resolve(model, search):
@@ -285,6 +296,7 @@ def resolve(model, search):
             structure.terms,
             structure.affine_joints,
             structure.reach,
+            structure.terms_tracks_last,
         )
     if isinstance(structure, AffineBias):
         return StructuredChooser(model.n_params, structure.affine)

@@ -13,7 +13,11 @@ sign of their coefficient ``sigma x.(-(hi_b - lo_b) h_b)``; the ``E = 2^(p - a)`
 corners of the others (``enumerated``) are all evaluated. Work per window step,
 for all ``T = 4n`` tracks at once (:func:`coupled_window_step`):
 
-1. the terms once per track;
+1. the terms of every track in one call, tracks on the last axis
+   (``LinearDynamics.terms_tracks_last`` when the model gives it, else ``vmap`` of
+   ``terms``), and from them each track's ``z_b`` and affine coefficients,
+   materialised once (left elementwise, XLA would fuse them into step 2's kernels
+   and recompute them per corner);
 2. per (track, enumerated corner) the row ``x`` and the score with every affine
    parameter at ``lo``:
 
@@ -34,7 +38,8 @@ for all ``T = 4n`` tracks at once (:func:`coupled_window_step`):
 4. per corner the lowest index within the threshold (affine bits greedily from the
    most significant) and one integer min-reduction over corners: the corner
    :func:`~rmijax.methods.choosers.pick_corner` picks among all ``2^p``;
-5. the chosen corner's full ``gv`` (one factorisation per track).
+5. the chosen corner's full ``gv`` (one factorisation per track) and the next
+   states, written out entry by entry and materialised in one kernel.
 
 Steps 3 and 4 each recompute step 2's per-corner part inside their reduction
 (XLA's CPU backend fuses it there; materialising it costs more). Divisions are
@@ -52,7 +57,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from rmijax._linalg import ldl_factor, ldl_solve, reciprocal
+from rmijax._linalg import ldl_factor, ldl_solve, materialise, reciprocal
 from rmijax.methods._keys import float_of_ordered, ordered_int, tie_tolerance
 
 __all__ = ["coupled_window_step"]
@@ -61,6 +66,16 @@ __all__ = ["coupled_window_step"]
 def _lead(a, ndim):
     """``a`` with leading unit axes up to ``ndim`` (explicit rank promotion)."""
     return jnp.reshape(a, (1,) * (ndim - a.ndim) + a.shape)
+
+
+def _rows(array, index):
+    """``array[index]`` for NumPy indices, by slices (a gather is a kernel of its own)."""
+    index = np.asarray(index, int)
+    if not index.size:
+        return array[:0]
+    if np.array_equal(index, np.arange(index[0], index[0] + index.size)):
+        return array[int(index[0]) : int(index[0]) + index.size]
+    return jnp.stack([array[int(b)] for b in index])
 
 
 class _Corners(NamedTuple):
@@ -75,25 +90,6 @@ class _Corners(NamedTuple):
     x: list
     base: jax.Array
     index: np.ndarray
-
-
-def _keep(arrays):
-    """Materialise arrays once, in one kernel: a variadic max-reduction of each over a
-    broadcast leading axis of length 2 (exact).
-
-    XLA's CPU backend has no multi-output loop fusion and fuses cheap producers into
-    every consumer; a variadic reduction computes all its operands in one loop and is
-    not fused into its consumers, so the arrays' common work runs once.
-    """
-    if not arrays:
-        return []
-    shape = jnp.broadcast_shapes(*(a.shape for a in arrays))
-    wide = tuple(jnp.broadcast_to(a, (2, *shape)) for a in arrays)
-    init = tuple(jnp.array(-jnp.inf, a.dtype) for a in arrays)
-    out = jax.lax.reduce(
-        wide, init, lambda x, y: tuple(jnp.maximum(a, b) for a, b in zip(x, y, strict=True)), (0,)
-    )
-    return list(out)
 
 
 def _chain_corners(m0, m_terms, z, rho0, onehots, weights, nominal, lo, hi, enum, reach):
@@ -154,7 +150,7 @@ def _chain_corners(m0, m_terms, z, rho0, onehots, weights, nominal, lo, hi, enum
             z_level[0] = z_k
             break
         keys = [(r, c) for r in range(k) for c in range(r + 1)]
-        kept = _keep([schur[key] for key in keys] + rho[:k] + eta[:k] + mult + [z_k, base])
+        kept = materialise([schur[key] for key in keys] + rho[:k] + eta[:k] + mult + [z_k, base])
         for key, value in zip(keys, kept, strict=False):
             schur[key] = value
         kept = kept[len(keys) :]
@@ -280,7 +276,8 @@ def coupled_window_step(
     """One coupled window step of every track, each with its exact corner (module docstring).
 
     Args:
-        terms: the model's ``(q, qd) -> (M0, M_b, h0, h_b)``.
+        terms: the model's terms of all tracks, tracks last: ``(q (n, T), qd (n, T)) ->
+            (M0 (n, n, T), M_b (p, n, n, T), h0 (n, T), h_b (p, n, T))``.
         enumerated, affine: parameter indices (ascending) enumerated and chosen by sign.
         affine_joints: for each affine parameter the one joint whose bias it enters,
             or None (``h_b`` dense).
@@ -295,41 +292,50 @@ def coupled_window_step(
     enum, aff = np.asarray(enumerated, int), np.asarray(affine, int)
     q, qd = states[..., 0], states[..., 1]
     dtype = q.dtype
-    n_params = lo.shape[0]
+    n_params, n = lo.shape[0], q.shape[1]
     v = u[None, :] - kd[None, :] * qd - kp[None, :] * q
-    m0, m_terms, _, h_terms = jax.vmap(terms)(q, qd)  # (T,n,n) (T,p,n,n) (T,n) (T,p,n)
     # tracks last from here on: every per-track scalar is a vector along the minor axis
+    m0, m_terms, _, h_terms = terms(q.T, qd.T)  # (n,n,T) (p,n,n,T) (n,T) (p,n,T)
     # the affine parameters' M_b vanish (declared): only the enumerated ones are kept
-    m0 = jnp.moveaxis(m0, 0, -1)
-    m_terms = jnp.moveaxis(m_terms[:, enum], 0, -1)  # (E_p, n, n, T)
-    h_terms = jnp.moveaxis(h_terms, 0, -1)  # (p, n, T)
-    z = h_terms.at[enum].add(jnp.einsum("pijt,jt->pit", m_terms, v.T))  # (p, n, T): M_b v + h_b
+    # (slices and elementwise sums over the small axes, not gathers, scatters or dots:
+    # on CPU each of those is a kernel of its own around arrays this small)
+    m_terms = _rows(m_terms, enum)  # (E_p, n, n, T)
+    v_t = v.T
+    pushed = sum(m_terms[:, :, j] * v_t[j][None, None] for j in range(n))  # (E_p, n, T): M_b v
+    slot = {int(b): e for e, b in enumerate(enum)}
+    z = jnp.stack(
+        [h_terms[b] + pushed[slot[b]] if b in slot else h_terms[b] for b in range(n_params)]
+    )  # (p, n, T): M_b v + h_b
+    # the per-track inputs of the corners are materialised here: left elementwise, XLA
+    # would fuse them into the corners' kernels and compute them once per corner
+    (z,) = materialise([z])
     width = hi - lo
-    rho0 = jnp.einsum("p,pit->it", nominal - lo, z)  # r with every parameter at lo
     onehot_t = onehots.T
-    if reach is None:
-        corners = _dense_corners(m0, m_terms, z, rho0, onehot_t, weights, lo, hi, enum)
-    else:
-        rho_top = rho0 - jnp.einsum("p,pit->it", (nominal - lo)[enum], z[enum])
-        corners = _chain_corners(
-            m0, m_terms, z, rho_top, onehot_t, weights, nominal, lo, hi, enum, reach
-        )
     coef = -(width[aff][:, None, None] * weights[None, None, :]) * h_terms[aff]  # (A, n, T)
     pos = neg = None
     joints = ()
     if affine_joints is not None and aff.size:
         joints = tuple(int(k) for k in affine_joints)
-        own = coef[np.arange(aff.size), np.asarray(joints, int)]  # (A, T)
-        onto = jnp.asarray(np.eye(q.shape[1])[np.asarray(joints, int)].T, dtype)  # (n, A)
-        pos = onto @ jnp.maximum(own, 0.0)
-        neg = onto @ jnp.minimum(own, 0.0)
+        own = [coef[j, k] for j, k in enumerate(joints)]  # A arrays (T,)
+        on = [[j for j, k in enumerate(joints) if k == joint] for joint in range(n)]
+        pos = jnp.stack([sum((jnp.maximum(own[j], 0.0) for j in js), 0.0 * v_t[0]) for js in on])
+        neg = jnp.stack([sum((jnp.minimum(own[j], 0.0) for j in js), 0.0 * v_t[0]) for js in on])
+        pos, neg = materialise([pos, neg])
+    if reach is None:
+        rho0 = sum((nominal[b] - lo[b]) * z[b] for b in range(n_params))  # every parameter at lo
+        corners = _dense_corners(m0, m_terms, z, rho0, onehot_t, weights, lo, hi, enum)
+    else:  # r with the enumerated parameters at nominal, the affine ones at lo
+        rho_top = sum(((nominal[b] - lo[b]) * z[b] for b in aff), 0.0 * z[0])
+        (rho_top,) = materialise([rho_top])
+        corners = _chain_corners(
+            m0, m_terms, z, rho_top, onehot_t, weights, nominal, lo, hi, enum, reach
+        )
     offset = weights * jnp.sum(onehots * v, axis=-1)
     corner_axes = tuple(range(corners.index.ndim))
 
     # every corner's row x, best and worst completion, materialised in one kernel
     best, worst, _ = _extremes(corners, coef, pos, neg, joints)
-    kept = _keep([*corners.x, best, worst])
-    n = q.shape[1]
+    kept = materialise([*corners.x, best, worst])
     corners = corners._replace(x=kept[:n])
     best, worst = kept[n], kept[n + 1]
 
@@ -358,10 +364,18 @@ def coupled_window_step(
     # the chosen corner's perturbation of every joint
     bits = (chosen[:, None] >> jnp.arange(n_params, dtype=itype)[None, :]) & 1
     th = jnp.where(bits == 1, hi[None, :], lo[None, :]).T  # (p, T)
-    m_c = m0 + jnp.einsum("pt,pijt->ijt", th[enum], m_terms)
-    r_c = jnp.einsum("pt,pit->it", nominal[:, None] - th, z)
-    lower, _, inv = ldl_factor([[m_c[a, b] for b in range(a + 1)] for a in range(n)], divide=False)
-    gv = jnp.stack(ldl_solve(lower, inv, [r_c[a] for a in range(n)]), axis=-1)  # (T, n)
-    q_next = q + dt * qd
-    qd_next = (-kp[None, :] * dt) * q + (1.0 - kd[None, :] * dt) * qd + dt * u[None, :] + dt * gv
-    return jnp.stack([q_next, qd_next], axis=-1)
+    # written out entry by entry and materialised at once: one kernel for the whole update
+    m_c = [[m0[a, b] for b in range(a + 1)] for a in range(n)]
+    for e, b in enumerate(enum):
+        m_c = [[m_c[a][c] + th[b] * m_terms[e, a, c] for c in range(a + 1)] for a in range(n)]
+    r_c = [sum((nominal[b] - th[b]) * z[b, a] for b in range(n_params)) for a in range(n)]
+    lower, _, inv = ldl_factor(m_c, divide=False)
+    gv = ldl_solve(lower, inv, r_c)  # n arrays (T,)
+    q_t, qd_t = q.T, qd.T
+    q_next = [q_t[a] + dt * qd_t[a] for a in range(n)]
+    qd_next = [
+        (-kp[a] * dt) * q_t[a] + (1.0 - kd[a] * dt) * qd_t[a] + dt * u[a] + dt * gv[a]
+        for a in range(n)
+    ]
+    kept = materialise(q_next + qd_next)
+    return jnp.stack([jnp.stack(kept[:n], axis=-1), jnp.stack(kept[n:], axis=-1)], axis=-1)

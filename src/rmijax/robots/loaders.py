@@ -954,6 +954,7 @@ def load_robot(
             terms=dynamics.terms,
             affine_joints=dynamics.affine_joints,
             reach=dynamics.reach,
+            terms_tracks_last=dynamics.terms_tracks_last,
         ),
     )
     return uncertain_robot(

@@ -34,6 +34,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.scipy.linalg import cho_factor, cho_solve
 
+from rmijax._linalg import materialise
+from rmijax.robots import _unrolled as _u
 from rmijax.robots.model import GRAVITY as _GRAVITY
 
 __all__ = [
@@ -155,6 +157,8 @@ class SpatialDynamics(NamedTuple):
         affine_joints: for each of them the joint whose bias it alone enters.
         reach: per parameter the last joint its terms touch (``M_b``, ``h_b`` vanish
             beyond it): a body's index, the payload's body, a friction's joint.
+        terms_tracks_last: ``(q (n, T), qd (n, T)) -> (M0 (n, n, T), M_b (p, n, n, T),
+            h0 (n, T), h_b (p, n, T))``, ``terms`` for ``T`` states, tracks last.
     """
 
     mass_matrix: Callable
@@ -165,6 +169,7 @@ class SpatialDynamics(NamedTuple):
     affine: tuple[int, ...]
     affine_joints: tuple[int, ...]
     reach: tuple[int, ...]
+    terms_tracks_last: Callable
 
 
 def smooth_sign(qd):
@@ -185,6 +190,122 @@ def _cross_point(x):
     """``-[x]^2 = (x.x) 1 - x x'`` for stacked points (k, 3) -> (k, 3, 3)."""
     eye = jnp.eye(3, dtype=x.dtype)[None]
     return jnp.sum(x * x, -1)[:, None, None] * eye - x[:, :, None] * x[:, None, :]
+
+
+class _Frames(NamedTuple):
+    """A chain's constants as nested tuples of floats (:mod:`rmijax.robots._unrolled`)."""
+
+    rotation: tuple  # per joint C_j, the joint frame in the parent frame
+    rotation_k: tuple  # C_j K_j, K_j the cross-product matrix of the joint axis
+    rotation_k2: tuple  # C_j K_j^2 (Rodrigues: Rot(q) = 1 + sin q K + (1 - cos q) K^2)
+    translation: tuple
+    tree_axis: tuple  # C_j a_j, the axis in the parent frame
+    com: tuple
+    inertia: tuple
+
+
+def _unrolled_frames(chain):
+    snap = 1e-14  # the residue of exact zeros in rotation matrices (cos(pi/2) = 6e-17)
+    skews = [_skew(a) for a in chain.axes]
+    rot = chain.rotations
+    return _Frames(
+        tuple(_u.constant(r, snap=snap) for r in rot),
+        tuple(_u.constant(r @ k, snap=snap) for r, k in zip(rot, skews, strict=True)),
+        tuple(_u.constant(r @ k @ k, snap=snap) for r, k in zip(rot, skews, strict=True)),
+        tuple(_u.constant(t) for t in chain.translations),
+        tuple(_u.constant(a, snap=snap) for a in np.einsum("nij,nj->ni", rot, chain.axes)),
+        tuple(_u.constant(c) for c in chain.coms),
+        tuple(_u.constant(i) for i in chain.inertias),
+    )
+
+
+def _unrolled_state(frames, revolute, attach, unit_masses, payload_point, q, qd):
+    """Kinematics, velocities and unit inertias in the base frame, one scalar per entry.
+
+    The computation of ``kinematics``, ``velocities`` and ``unit_inertias`` in
+    :func:`spatial_dynamics`, entry by entry on arrays of ``T`` tracks (``q``,
+    ``qd``: (n, T)), materialised in one kernel. Returns per joint the motion axis
+    ``S_j`` and the body's velocity and bias acceleration (6-tuples, angular
+    first), and per unit inertia its rotational inertia about the base origin
+    (a dict of the lower triangle) and first moment (3-tuple).
+    """
+    n = len(revolute)
+    # sines and cosines first, in a kernel of their own: XLA does not copy an expensive
+    # op into several consumers, so otherwise every entry they feed is a kernel apart
+    turns = [j for j in range(n) if revolute[j]]
+    trig = materialise([jnp.sin(q[j]) for j in turns] + [jnp.cos(q[j]) for j in turns])
+    sines = dict(zip(turns, trig[: len(turns)], strict=True))
+    cosines = dict(zip(turns, trig[len(turns) :], strict=True))
+    rotation = _u.constant(np.eye(3))
+    origin = (0.0, 0.0, 0.0)
+    rotations, origins, motion = [], [], []
+    for j in range(n):
+        origin = tuple(map(_u.add, origin, _u.matvec(rotation, frames.translation[j])))
+        axis = _u.matvec(rotation, frames.tree_axis[j])
+        if revolute[j]:
+            sin, versin = sines[j], 1.0 - cosines[j]
+            fixed = _u.matmul(rotation, frames.rotation[j])
+            first = _u.matmul(rotation, frames.rotation_k[j])
+            second = _u.matmul(rotation, frames.rotation_k2[j])
+            rotation = tuple(
+                tuple(
+                    _u.add(_u.add(f, _u.mul(sin, a)), _u.mul(versin, b))
+                    for f, a, b in zip(*rows, strict=True)
+                )
+                for rows in zip(fixed, first, second, strict=True)
+            )
+            motion.append(axis + _u.cross(origin, axis))
+        else:
+            rotation = _u.matmul(rotation, frames.rotation[j])
+            origin = tuple(_u.add(o, _u.mul(q[j], a)) for o, a in zip(origin, axis, strict=True))
+            motion.append((0.0, 0.0, 0.0) + axis)
+        rotations.append(rotation)
+        origins.append(origin)
+    w, vo = (0.0, 0.0, 0.0), (0.0, 0.0, 0.0)
+    aw, av = (0.0, 0.0, 0.0), (0.0, 0.0, GRAVITY)
+    velocity, acceleration = [], []
+    for j in range(n):
+        mw = tuple(_u.mul(qd[j], x) for x in motion[j][:3])
+        mv = tuple(_u.mul(qd[j], x) for x in motion[j][3:])
+        w, vo = tuple(map(_u.add, w, mw)), tuple(map(_u.add, vo, mv))
+        aw = tuple(map(_u.add, aw, _u.cross(w, mw)))
+        av = tuple(map(_u.add, av, map(_u.add, _u.cross(w, mv), _u.cross(vo, mw))))
+        velocity.append(w + vo)
+        acceleration.append(aw + av)
+    lower = [(i, k) for i in range(3) for k in range(i + 1)]
+    inertia, moment = [], []
+    for b, body in enumerate(attach):
+        turn, place = rotations[body], origins[body]
+        if b < n:
+            com = tuple(map(_u.add, place, _u.matvec(turn, frames.com[b])))
+            turned = _u.matmul(turn, frames.inertia[b])
+            about = {(i, k): _u.dot(turned[i], turn[k]) for i, k in lower}
+        else:
+            com = tuple(map(_u.add, place, _u.matvec(turn, payload_point)))
+            about = dict.fromkeys(lower, 0.0)
+        squared = _u.dot(com, com)
+        m = unit_masses[b]
+        for i, k in lower:  # parallel axis: + m ((c.c) 1 - c c')
+            shift = _u.sub(squared if i == k else 0.0, _u.mul(com[i], com[k]))
+            about[i, k] = _u.add(about[i, k], _u.mul(m, shift))
+        inertia.append(about)
+        moment.append(tuple(_u.mul(m, c) for c in com))
+    flat = [x for j in range(n) for x in motion[j] + velocity[j] + acceleration[j]]
+    flat += [x for b in range(len(attach)) for x in (*inertia[b].values(), *moment[b])]
+    tracks = q.shape[-1]
+    values = [x for x in flat if not _u.is_constant(x)]
+    kept = iter(materialise([jnp.broadcast_to(x, (tracks,)) for x in values]))
+    flat = iter([x if _u.is_constant(x) else next(kept) for x in flat])
+    motion, velocity, acceleration = [], [], []
+    for _ in range(n):
+        motion.append(tuple(next(flat) for _ in range(6)))
+        velocity.append(tuple(next(flat) for _ in range(6)))
+        acceleration.append(tuple(next(flat) for _ in range(6)))
+    inertia, moment = [], []
+    for _ in attach:
+        inertia.append(dict(zip(lower, [next(flat) for _ in lower], strict=True)))
+        moment.append(tuple(next(flat) for _ in range(3)))
+    return motion, velocity, acceleration, inertia, moment
 
 
 def spatial_dynamics(
@@ -216,8 +337,6 @@ def spatial_dynamics(
     names += [f"{kind}[{j}]" for kind in friction for j in chain.joint_names]
     n_params = len(names)
     upper = np.triu(np.ones((n, n), dtype=bool))
-    # reach[b, i]: joint i moves unit inertia b (it is inboard of b's body).
-    reach = np.arange(n)[None, :] <= attach[:, None]
 
     def kinematics(q):
         """World poses and joint motion axes; q (n,) -> R (n,3,3), origins (n,3), S (n,6)."""
@@ -352,25 +471,99 @@ def spatial_dynamics(
         factor = cho_factor(mass_matrix(q, th))
         return cho_solve(factor, tau - bias(q, qd, th))
 
+    frames = _unrolled_frames(chain)
+    unit_masses = tuple(float(m) for m in chain.masses) + ((1.0,) if payload is not None else ())
+    payload_point = _u.constant(payload.point) if payload is not None else None
+
+    def terms_tracks_last(q, qd):
+        """Linear decomposition for ``T`` states at once, tracks on the last axis.
+
+        Args:
+            q, qd: (n, T) joint positions and velocities.
+
+        Returns:
+            ``M0 (n, n, T)``, ``M_b (p, n, n, T)``, ``h0 (n, T)``, ``h_b (p, n, T)``.
+
+        The same recursions as :func:`mass_matrix` and :func:`bias`, written out on
+        scalars (one array of ``T`` values each) so that XLA's CPU backend runs them
+        as a few fused loops vectorised over the tracks; ``M_b`` is filled only where
+        unit ``b`` reaches (``reach``), each entry once (``M_b`` is symmetric).
+        """
+        q, qd = _common(q, qd)
+        dtype, tracks = q.dtype, q.shape[-1]
+        motion, velocity, acceleration, inertia, moment = _unrolled_state(
+            frames, revolute, attach, unit_masses, payload_point, q, qd
+        )
+        zero = jnp.zeros((tracks,), dtype)
+
+        def array(x):
+            return jnp.full((tracks,), x, dtype) if _u.is_constant(x) else x
+
+        def apply(b, vector):  # spatial inertia of unit b times a motion vector
+            ang, lin = vector[:3], vector[3:]
+            rows = [[inertia[b][max(i, k), min(i, k)] for k in range(3)] for i in range(3)]
+            turn = _u.cross(moment[b], lin)
+            torque = tuple(_u.add(_u.dot(row, ang), t) for row, t in zip(rows, turn, strict=True))
+            push = _u.cross(moment[b], ang)
+            force = tuple(
+                _u.sub(_u.mul(unit_masses[b], x), y) for x, y in zip(lin, push, strict=True)
+            )
+            return torque + force
+
+        entries, places = [], []
+        for b in range(units):
+            last = int(attach[b])
+            for j in range(last + 1):
+                projected = apply(b, motion[j])
+                for i in range(j + 1):
+                    entries.append(_u.dot(motion[i], projected))
+                    places.append(("mass", b, i, j))
+            v, a = velocity[last], acceleration[last]
+            momentum, force = apply(b, v), apply(b, a)
+            w, vo = v[:3], v[3:]
+            torque = tuple(
+                _u.add(_u.add(f, x), y)
+                for f, x, y in zip(
+                    force[:3], _u.cross(w, momentum[:3]), _u.cross(vo, momentum[3:]), strict=True
+                )
+            )
+            push = tuple(
+                _u.add(f, x) for f, x in zip(force[3:], _u.cross(w, momentum[3:]), strict=True)
+            )
+            for i in range(last + 1):
+                entries.append(_u.dot(motion[i], torque + push))
+                places.append(("bias", b, i, None))
+        kept = iter(materialise([array(x) for x in entries]))
+        mass_terms = [[[zero] * n for _ in range(n)] for _ in range(n_params)]
+        bias_terms = [[zero] * n for _ in range(n_params)]
+        for kind, b, i, j in places:
+            value = next(kept)
+            if kind == "mass":
+                mass_terms[b][i][j] = mass_terms[b][j][i] = value
+            else:
+                bias_terms[b][i] = value
+        for k, kind in enumerate(friction):
+            for j in range(n):
+                bias_terms[units + k * n + j][j] = (
+                    qd[j] if kind == "viscous" else smooth_sign(qd[j])
+                )
+        mass0 = jnp.broadcast_to(
+            jnp.diag(jnp.asarray(chain.armature, dtype))[..., None], (n, n, tracks)
+        )
+        # one flat stack each (nested stacks become one small kernel per row on CPU)
+        flat_mass = [x for m in mass_terms for row in m for x in row]
+        flat_bias = [x for row in bias_terms for x in row]
+        return (
+            mass0,
+            jnp.stack(flat_mass).reshape(n_params, n, n, tracks),
+            jnp.zeros((n, tracks), dtype),
+            jnp.stack(flat_bias).reshape(n_params, n, tracks),
+        )
+
     def terms(q, qd):
         """Linear decomposition: M0 (n,n), M_b (p,n,n), h0 (n,), h_b (p,n)."""
         q, qd = _common(q, qd)
-        dtype = q.dtype
-        rotations, origins, motion = kinematics(q)
-        velocity, acceleration = velocities(motion, qd)
-        inertias = unit_inertias(rotations, origins)
-        # M_b = J_b' I_b J_b: J_b holds the axes of the joints inboard of unit b.
-        projected = apply_inertia(*inertias, jnp.broadcast_to(motion, (units, n, 6)))
-        mass_terms = jnp.einsum("ik,bjk->bij", motion, projected)
-        mass_terms = jnp.where(reach[:, :, None] & reach[:, None, :], mass_terms, 0)
-        bias_terms = jnp.where(reach, unit_forces(inertias, velocity, acceleration) @ motion.T, 0)
-        if friction:
-            eye = jnp.eye(n, dtype=dtype)
-            rows = [eye * (qd if k == "viscous" else smooth_sign(qd))[None, :] for k in friction]
-            bias_terms = jnp.concatenate([bias_terms, *rows])
-            mass_terms = jnp.concatenate([mass_terms, jnp.zeros((n * len(friction), n, n), dtype)])
-        mass0 = jnp.diag(jnp.asarray(chain.armature, dtype))
-        return mass0, mass_terms, jnp.zeros(n, dtype), bias_terms
+        return tuple(x[..., 0] for x in terms_tracks_last(q[:, None], qd[:, None]))
 
     def _common(*arrays):
         dtype = jnp.result_type(*arrays)
@@ -378,11 +571,19 @@ def spatial_dynamics(
             dtype = jnp.result_type(float)
         return tuple(jnp.asarray(x, dtype) for x in arrays)
 
-    for function in (mass_matrix, bias, forward_dynamics, terms):
+    for function in (mass_matrix, bias, forward_dynamics, terms, terms_tracks_last):
         function.__qualname__ = f"{chain.name}.{function.__name__}"
         function.__doc__ = (function.__doc__ or "") + f"\n\n    Parameters (p={n_params}): {names}"
     affine_joints = tuple(j for _ in friction for j in range(n))
     last_joint = tuple(int(b) for b in attach) + affine_joints
     return SpatialDynamics(
-        mass_matrix, bias, forward_dynamics, terms, tuple(names), affine, affine_joints, last_joint
+        mass_matrix,
+        bias,
+        forward_dynamics,
+        terms,
+        tuple(names),
+        affine,
+        affine_joints,
+        last_joint,
+        terms_tracks_last,
     )
