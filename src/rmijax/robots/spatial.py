@@ -30,6 +30,7 @@ import dataclasses
 from collections.abc import Callable
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.scipy.linalg import cho_factor, cho_solve
@@ -219,6 +220,16 @@ def _unrolled_frames(chain):
     )
 
 
+def _materialise_tree(tree, tracks):
+    """``tree`` with every array leaf computed in one kernel (Python floats stay)."""
+    leaves, treedef = jax.tree_util.tree_flatten(tree)
+    where = [i for i, x in enumerate(leaves) if not _u.is_constant(x)]
+    kept = materialise([jnp.broadcast_to(leaves[i], (tracks,)) for i in where])
+    for i, value in zip(where, kept, strict=True):
+        leaves[i] = value
+    return jax.tree_util.tree_unflatten(treedef, leaves)
+
+
 def _unrolled_state(frames, revolute, attach, unit_masses, payload_point, q, qd):
     """Kinematics, velocities and unit inertias in the base frame, one scalar per entry.
 
@@ -261,6 +272,8 @@ def _unrolled_state(frames, revolute, attach, unit_masses, payload_point, q, qd)
             motion.append((0.0, 0.0, 0.0) + axis)
         rotations.append(rotation)
         origins.append(origin)
+    # materialised in stages: one kernel of everything compiles twice as slowly
+    rotations, origins, motion = _materialise_tree((rotations, origins, motion), q.shape[-1])
     w, vo = (0.0, 0.0, 0.0), (0.0, 0.0, 0.0)
     aw, av = (0.0, 0.0, 0.0), (0.0, 0.0, GRAVITY)
     velocity, acceleration = [], []
@@ -290,22 +303,7 @@ def _unrolled_state(frames, revolute, attach, unit_masses, payload_point, q, qd)
             about[i, k] = _u.add(about[i, k], _u.mul(m, shift))
         inertia.append(about)
         moment.append(tuple(_u.mul(m, c) for c in com))
-    flat = [x for j in range(n) for x in motion[j] + velocity[j] + acceleration[j]]
-    flat += [x for b in range(len(attach)) for x in (*inertia[b].values(), *moment[b])]
-    tracks = q.shape[-1]
-    values = [x for x in flat if not _u.is_constant(x)]
-    kept = iter(materialise([jnp.broadcast_to(x, (tracks,)) for x in values]))
-    flat = iter([x if _u.is_constant(x) else next(kept) for x in flat])
-    motion, velocity, acceleration = [], [], []
-    for _ in range(n):
-        motion.append(tuple(next(flat) for _ in range(6)))
-        velocity.append(tuple(next(flat) for _ in range(6)))
-        acceleration.append(tuple(next(flat) for _ in range(6)))
-    inertia, moment = [], []
-    for _ in attach:
-        inertia.append(dict(zip(lower, [next(flat) for _ in lower], strict=True)))
-        moment.append(tuple(next(flat) for _ in range(3)))
-    return motion, velocity, acceleration, inertia, moment
+    return _materialise_tree((motion, velocity, acceleration, inertia, moment), q.shape[-1])
 
 
 def spatial_dynamics(
