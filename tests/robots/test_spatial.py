@@ -210,17 +210,23 @@ def test_without_payload_or_friction_matches_pinocchio(tmp_path, rng):
     assert mass_error < 1e-9 and bias_error < 1e-9
 
 
-@pytest.mark.parametrize("name", ["panda", "random"])
-def test_terms_reassemble_mass_matrix_and_bias(name, tmp_path, rng):
+def _with_every_parameter(name, tmp_path, rng, joints, payload_body, point):
+    """A shipped arm (or a random chain of ``joints``) with mass scales, a payload at
+    ``point`` of body ``n + payload_body`` and both friction kinds."""
     if name == "random":
         path = tmp_path / "chain.urdf"
-        path.write_text(random_chain_urdf(rng, 6))
+        path.write_text(random_chain_urdf(rng, joints))
         name = path
     chain = load_chain(name)
     n = chain.n_joints
-    dynamics = spatial_dynamics(
-        chain, payload=Payload(n - 2, np.array([0.1, 0.0, -0.05])), friction=("viscous", "coulomb")
-    )
+    payload = Payload(n + payload_body, np.array(point))
+    return chain, spatial_dynamics(chain, payload=payload, friction=("viscous", "coulomb"))
+
+
+@pytest.mark.parametrize("name", ["panda", "random"])
+def test_terms_reassemble_mass_matrix_and_bias(name, tmp_path, rng):
+    chain, dynamics = _with_every_parameter(name, tmp_path, rng, 6, -2, [0.1, 0.0, -0.05])
+    n = chain.n_joints
     p = len(dynamics.param_names)
     assert p == 3 * n + 1 and dynamics.affine == tuple(range(n + 1, 3 * n + 1))
     count = 20
@@ -260,15 +266,8 @@ def test_terms_reassemble_mass_matrix_and_bias(name, tmp_path, rng):
 def test_terms_of_many_tracks_equal_terms_of_each(name, tmp_path, rng):
     """``terms_tracks_last`` (the coupled search's batch form, tracks on the last axis)
     equals ``terms`` state by state, for prismatic joints too."""
-    if name == "random":
-        path = tmp_path / "chain.urdf"
-        path.write_text(random_chain_urdf(rng, 7))
-        name = path
-    chain = load_chain(name)
+    chain, dynamics = _with_every_parameter(name, tmp_path, rng, 7, -1, [0.0, 0.05, 0.1])
     n = chain.n_joints
-    dynamics = spatial_dynamics(
-        chain, payload=Payload(n - 1, np.array([0.0, 0.05, 0.1])), friction=("viscous", "coulomb")
-    )
     tracks = 9
     q, qd = rng.uniform(-np.pi, np.pi, (tracks, n)), rng.normal(size=(tracks, n))
     each = jax.jit(jax.vmap(dynamics.terms))(q, qd)
