@@ -41,8 +41,9 @@ for all ``T = 4n`` tracks at once (:func:`coupled_window_step`):
 5. the chosen corner's full ``gv`` (one factorisation per track) and the next
    states, written out entry by entry and materialised in one kernel.
 
-Steps 3 and 4 each recompute step 2's per-corner part inside their reduction
-(XLA's CPU backend fuses it there; materialising it costs more). Divisions are
+Step 2's rows and step 3's best and worst completions are materialised in one
+kernel; the two reductions read them, and step 4 recomputes the affine spans from
+the rows inside its reduction. Divisions are
 Newton reciprocals (:func:`rmijax._linalg.reciprocal`) so that each pass stays one
 fused, vectorised loop; the tree's levels are materialised between levels (a
 division by a runtime one is a boundary XLA does not fuse across a broadcast).

@@ -235,7 +235,8 @@ def _unrolled_state(frames, revolute, attach, unit_masses, payload_point, q, qd)
 
     The computation of ``kinematics``, ``velocities`` and ``unit_inertias`` in
     :func:`spatial_dynamics`, entry by entry on arrays of ``T`` tracks (``q``,
-    ``qd``: (n, T)), materialised in one kernel. Returns per joint the motion axis
+    ``qd``: (n, T)), materialised in three kernels (sines and cosines; poses and
+    motion axes; the rest). Returns per joint the motion axis
     ``S_j`` and the body's velocity and bias acceleration (6-tuples, angular
     first), and per unit inertia its rotational inertia about the base origin
     (a dict of the lower triangle) and first moment (3-tuple).
