@@ -12,8 +12,17 @@ robot (every parameter at nominal + 0.6 (hi - nominal)) simulated on the move, i
 readings checked against the method's bands, so that the fastest alarm-free method can
 be read off.
 
+``--latency`` times the ticks as a control process would run them: JAX's synchronous
+CPU dispatch (``jax.config.update("jax_cpu_enable_async_dispatch", False)``: the tick
+runs on the calling thread, no hand-off to a dispatch thread) and the process pinned to
+one core (``os.sched_setaffinity``, so XLA's thread pool has one thread and its small
+kernels are not handed between cores). On a 2-core VM those hand-offs, not the
+arithmetic, are most of a single-step tick. Both settings are the user's (process-wide);
+the library sets neither.
+
 Run: python benchmarks/monitor.py [--links 1 2 3 4 5 6] [--json monitor.json]
      python benchmarks/monitor.py --robot panda --json monitor_panda.json
+     python benchmarks/monitor.py --robot panda --latency --json monitor_panda_latency.json
 """
 
 from __future__ import annotations
@@ -85,8 +94,14 @@ def main(argv=None):
     parser.add_argument(
         "--segment-time", type=float, default=0.5, help="s per segment of the --robot move"
     )
+    parser.add_argument(
+        "--latency",
+        action="store_true",
+        help="synchronous dispatch and the process pinned to one core (see the docstring)",
+    )
     parser.add_argument("--json", default=None, help="write results here")
     args = parser.parse_args(argv)
+    _setup_latency(args)
     if args.robot is not None:
         return robot_main(args, argv)
     args.window = 100 if args.window is None else args.window
@@ -205,6 +220,7 @@ def robot_main(args, argv):
                 "calls": timing["calls"],
                 "budget_ratio": timing["p50_s"] / REAL_TIME_BUDGET_S,
                 "fault_free_alarm_ticks": alarms,
+                "latency_setup": args.latency,
                 "first_false_alarm_s": None if first is None else first * float(traj.dt),
                 "peak_rss_mb": peak_rss_mb(),
             }
@@ -219,6 +235,19 @@ def robot_main(args, argv):
     write_json(args.json, records, meta)
     print(f"device: {meta['device']}; load average {meta['load_avg']}")
     return records
+
+
+def _setup_latency(args):
+    """Apply ``--latency`` before JAX creates its CPU client (the pool is sized then)."""
+    import os
+
+    import jax
+
+    if args.latency:
+        os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
+        jax.config.update("jax_cpu_enable_async_dispatch", False)
+    args.cpus = sorted(os.sched_getaffinity(0))
+    args.async_dispatch = bool(jax.config.jax_cpu_enable_async_dispatch)
 
 
 def mon_window(method, window):

@@ -23,6 +23,7 @@ from rmijax.methods.choosers import (
     structured_pick,
 )
 from rmijax.methods.planar_search import SEARCH
+from rmijax.methods.rmi import DEFAULT_MEMORY_BUDGET, _rmi_from_starts
 from rmijax.robots.loaders import load_robot
 from rmijax.robots.planar import planar_bias, planar_mass_matrix
 
@@ -225,6 +226,42 @@ def test_real_arm_search_equals_enumeration(declared, arm3_case):
     np.testing.assert_allclose(structured.lower, enumerated.lower, rtol=0, atol=1e-10)
     np.testing.assert_allclose(structured.upper, enumerated.upper, rtol=0, atol=1e-10)
     assert float(jnp.min(structured.width)) >= 0 and float(jnp.max(structured.width)) > 1e-4
+
+
+@pytest.mark.parametrize("declared", ["chain", "dense_bias"])
+@pytest.mark.parametrize("start", ["nominal", "measured"])
+def test_one_step_windows_equal_enumeration(declared, start, arm3_case):
+    """Windows of one step (the monitor's cheapest tick) take the shared start once and
+    search the tachometer tracks only; the bounds equal enumeration's, the readings'
+    start included (all tracks from one measured state)."""
+    params, traj, _ = arm3_case
+    if declared == "dense_bias":
+        structure = dataclasses.replace(params.model.structure, reach=None, affine_joints=None)
+        model = dataclasses.replace(params.model, structure=structure)
+        params = rmijax.uncertain_robot(model, params.nominal, params.lo, params.hi)
+    th = np.asarray(params.nominal) + 0.5 * (np.asarray(params.hi) - np.asarray(params.nominal))
+    _, readings = rmijax.simulate(traj, params, th)
+    starts = None if start == "nominal" else jnp.asarray(readings)
+    no_noise = jnp.zeros((traj.n_joints, 2))
+    got, want = (
+        _rmi_from_starts(
+            traj,
+            params,
+            starts,
+            no_noise,
+            no_noise,
+            mode="coupled",
+            window=1,
+            memory_budget=DEFAULT_MEMORY_BUDGET,
+            chunk_size=None,
+            progress=False,
+            search=search,
+        )
+        for search in ("auto", "enumerate")
+    )
+    np.testing.assert_allclose(got.lower, want.lower, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(got.upper, want.upper, rtol=0, atol=1e-10)
+    assert float(jnp.max(got.upper[..., 1] - got.lower[..., 1])) > 1e-4
 
 
 def test_divide_free_reciprocal_is_within_a_few_ulps(rng):

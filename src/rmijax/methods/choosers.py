@@ -234,6 +234,7 @@ class LinearChooser(StructuredChooser):
     affine_joints: tuple[int, ...] | None = None
     reach: tuple[int, ...] | None = None
     terms_tracks_last: Callable | None = None
+    shared_start = True  # coupled_step takes (1, n, 2) states shared by every track
 
     def coupled_step(self, states, u, weights, onehots, nominal, lo, hi, kp, kd, dt):
         return linear_search.coupled_window_step(

@@ -79,12 +79,46 @@ def _rows(array, index):
     return jnp.stack([array[int(b)] for b in index])
 
 
+def _materialise_by_shape(arrays):
+    """:func:`materialise` of arrays of each shape in a kernel of their own, in order.
+
+    When the tracks share their state (a window's first step) the factorisation's
+    arrays have one track and the rows all of them: materialised together, the
+    shared ones would be broadcast to every track and computed once per track.
+    """
+    groups = {}
+    for i, a in enumerate(arrays):
+        groups.setdefault(a.shape, []).append(i)
+    out = [None] * len(arrays)
+    for members in groups.values():
+        for i, value in zip(members, materialise([arrays[i] for i in members]), strict=True):
+            out[i] = value
+    return out
+
+
+def _spread(a, of_track):
+    """``a[..., of_track]`` for a static index; a broadcast when the tracks repeat a block.
+
+    A gather is a kernel of its own on CPU; ``tile(repeat(arange(r), inner), outer)``
+    (the engine's track layout) is a broadcast and a reshape, which fuse into the reader.
+    """
+    r = int(np.max(of_track)) + 1
+    for inner in range(1, of_track.size // r + 1):
+        outer = of_track.size // (r * inner)
+        if outer * r * inner == of_track.size and np.array_equal(
+            of_track, np.tile(np.repeat(np.arange(r), inner), outer)
+        ):
+            wide = jnp.broadcast_to(a[..., None, :r, None], (*a.shape[:-1], outer, r, inner))
+            return wide.reshape(*a.shape[:-1], of_track.size)
+    return jnp.take(a, of_track, axis=-1)
+
+
 class _Corners(NamedTuple):
     """Every corner of every track, tracks on the last (minor) axis.
 
     Attributes:
-        x: n arrays broadcastable to ``shape + (T,)``: the row ``M^-1 e_i``.
-        base: ``sigma x.r`` with every affine parameter at lo, same shape.
+        x: n arrays broadcastable to ``shape + (R,)``: the row ``M^-1 e_i``.
+        base: ``x.r`` with every affine parameter at lo, same shape (unweighted).
         index: NumPy ints of ``shape``: each corner's index (its enumerated bits).
     """
 
@@ -93,7 +127,7 @@ class _Corners(NamedTuple):
     index: np.ndarray
 
 
-def _chain_corners(m0, m_terms, z, rho0, onehots, weights, nominal, lo, hi, enum, reach):
+def _chain_corners(m0, m_terms, z, rho0, onehots, nominal, lo, hi, enum, reach):
     """Every corner by the tip-first tree factorisation (``reach`` declared).
 
     Arrays carry one leading axis per enumerated parameter (length 2 once the
@@ -108,10 +142,10 @@ def _chain_corners(m0, m_terms, z, rho0, onehots, weights, nominal, lo, hi, enum
         m0 (n, n, T), m_terms (E_p, n, n, T) of the enumerated parameters (in ``enum``
             order), z (p, n, T): the terms, tracks last.
         rho0 (n, T): ``r`` with the enumerated parameters at their nominal values
-            and the affine ones at lo; onehots (n, T); weights (T,).
+            and the affine ones at lo; onehots (n, R): the rows ``e_i`` wanted.
         nominal, lo, hi: (p,); enum: NumPy indices; reach: per parameter.
     """
-    n, tracks = rho0.shape
+    n = rho0.shape[0]
     axis_of = {int(b): a for a, b in enumerate(enum)}
     n_axes = len(enum)
 
@@ -137,6 +171,8 @@ def _chain_corners(m0, m_terms, z, rho0, onehots, weights, nominal, lo, hi, enum
             for j in range(k + 1):
                 rho[j] = rho[j] + (nominal[b] - th) * lift(z[b, j])
         inv = reciprocal(schur[k, k])
+        if k == 0 and inv.shape != eta[0].shape:  # shared: not once per row
+            (inv,) = materialise([inv])
         mult = [schur[k, j] * inv for j in range(k)]  # U_jk
         w_k, y_k = rho[k], eta[k]
         z_k = y_k * inv
@@ -151,7 +187,9 @@ def _chain_corners(m0, m_terms, z, rho0, onehots, weights, nominal, lo, hi, enum
             z_level[0] = z_k
             break
         keys = [(r, c) for r in range(k) for c in range(r + 1)]
-        kept = materialise([schur[key] for key in keys] + rho[:k] + eta[:k] + mult + [z_k, base])
+        kept = _materialise_by_shape(
+            [schur[key] for key in keys] + rho[:k] + eta[:k] + mult + [z_k, base]
+        )
         for key, value in zip(keys, kept, strict=False):
             schur[key] = value
         kept = kept[len(keys) :]
@@ -167,16 +205,16 @@ def _chain_corners(m0, m_terms, z, rho0, onehots, weights, nominal, lo, hi, enum
         x.append(value)
     bits = np.indices((2,) * n_axes).reshape(n_axes, -1).T  # corner grid, C order
     index = np.sum(bits << np.asarray(enum, int)[None, :], axis=1).reshape((2,) * n_axes)
-    return _Corners(x, _lead(weights, base.ndim) * base, index)
+    return _Corners(x, base, index)
 
 
-def _dense_corners(m0, m_terms, z, rho0, onehots, weights, lo, hi, enum):
+def _dense_corners(m0, m_terms, z, rho0, onehots, lo, hi, enum):
     """Every corner by an elementwise ``LDL'`` of its ``M`` (no ``reach`` declared).
 
     The enumerated parameters split into low and high halves; a corner's ``M`` and
     ``r`` are the sum of a high-half and a low-half table entry, ``(H, L, T)``.
     """
-    n, tracks = rho0.shape
+    n = rho0.shape[0]
     dtype = rho0.dtype
     width = hi - lo
     n_enum = enum.size
@@ -204,7 +242,7 @@ def _dense_corners(m0, m_terms, z, rho0, onehots, weights, lo, hi, enum):
         base = base + x[a] * resid[a]
     e_bits = (np.arange(2**n_enum)[:, None] >> np.arange(n_enum)[None, :]) & 1
     index = np.sum(e_bits << enum[None, :], axis=1).reshape(2 ** (n_enum - n_low), 2**n_low)
-    return _Corners(x, _lead(weights, base.ndim) * base, index)
+    return _Corners(x, base, index)
 
 
 def _extremes(corners, coef, pos, neg, joints, spans=False):
@@ -283,7 +321,10 @@ def coupled_window_step(
         affine_joints: for each affine parameter the one joint whose bias it enters,
             or None (``h_b`` dense).
         reach: per parameter the last joint ``M_b``, ``h_b`` touch, or None.
-        states: (T, n, 2) the tracks' states; u: (n,) feed-forward.
+        states: (T, n, 2) the tracks' states, or (1, n, 2) when every track is in that
+            state (a window's first step): the terms, ``z`` and, along a chain, the
+            factorisation are then computed once and shared; only the rows, scores
+            and the chosen corners' updates are per track. u: (n,) feed-forward.
         weights: (T,) ``sigma``; onehots: (T, n) each track's joint.
         nominal, lo, hi: (p,) the box; kp, kd: (n,) gains; dt: s.
 
@@ -294,6 +335,7 @@ def coupled_window_step(
     q, qd = states[..., 0], states[..., 1]
     dtype = q.dtype
     n_params, n = lo.shape[0], q.shape[1]
+    tracks = weights.shape[0]
     v = u[None, :] - kd[None, :] * qd - kp[None, :] * q
     # tracks last from here on: every per-track scalar is a vector along the minor axis
     m0, m_terms, _, h_terms = terms(q.T, qd.T)  # (n,n,T) (p,n,n,T) (n,T) (p,n,T)
@@ -322,23 +364,39 @@ def coupled_window_step(
         pos = jnp.stack([sum((jnp.maximum(own[j], 0.0) for j in js), 0.0 * v_t[0]) for js in on])
         neg = jnp.stack([sum((jnp.minimum(own[j], 0.0) for j in js), 0.0 * v_t[0]) for js in on])
         pos, neg = materialise([pos, neg])
+    # the rows x = M^-1 e_i wanted: one per track, or one per joint when the tracks share
+    # their state (then every track of a joint has the same row)
+    rows, of_track = onehot_t, None
+    if v.shape[0] == 1 and isinstance(onehots, np.ndarray):
+        joint_of = np.argmax(onehots, axis=1)
+        wanted, of_track = np.unique(joint_of, return_inverse=True)
+        # padded to whole vectors (4 lanes): a minor axis of 7 is not vectorised
+        padded = np.concatenate([wanted, np.repeat(wanted[:1], -wanted.size % 4)])
+        rows = jnp.asarray(np.eye(n)[padded].T, dtype)  # (n, R)
     if reach is None:
         rho0 = sum((nominal[b] - lo[b]) * z[b] for b in range(n_params))  # every parameter at lo
-        corners = _dense_corners(m0, m_terms, z, rho0, onehot_t, weights, lo, hi, enum)
+        corners = _dense_corners(m0, m_terms, z, rho0, rows, lo, hi, enum)
     else:  # r with the enumerated parameters at nominal, the affine ones at lo
         rho_top = sum(((nominal[b] - lo[b]) * z[b] for b in aff), 0.0 * z[0])
         (rho_top,) = materialise([rho_top])
-        corners = _chain_corners(
-            m0, m_terms, z, rho_top, onehot_t, weights, nominal, lo, hi, enum, reach
+        corners = _chain_corners(m0, m_terms, z, rho_top, rows, nominal, lo, hi, enum, reach)
+    if of_track is not None:  # materialised once per joint, then read by every track
+        kept = materialise([*corners.x, corners.base])
+        corners = corners._replace(
+            x=[_spread(a, of_track) for a in kept[:n]], base=_spread(kept[n], of_track)
         )
+    corners = corners._replace(base=_lead(weights, corners.base.ndim) * corners.base)
     offset = weights * jnp.sum(onehots * v, axis=-1)
     corner_axes = tuple(range(corners.index.ndim))
 
     # every corner's row x, best and worst completion, materialised in one kernel
     best, worst, _ = _extremes(corners, coef, pos, neg, joints)
-    kept = materialise([*corners.x, best, worst])
-    corners = corners._replace(x=kept[:n])
-    best, worst = kept[n], kept[n + 1]
+    if of_track is None:
+        kept = materialise([*corners.x, best, worst])
+        corners = corners._replace(x=kept[:n])
+        best, worst = kept[n], kept[n + 1]
+    else:
+        best, worst = materialise([best, worst])
 
     # pass 1: the extremes over every corner (one integer max-reduction)
     high, low = ordered_int(best), ordered_int(-worst)
@@ -370,6 +428,10 @@ def coupled_window_step(
     for e, b in enumerate(enum):
         m_c = [[m_c[a][c] + th[b] * m_terms[e, a, c] for c in range(a + 1)] for a in range(n)]
     r_c = [sum((nominal[b] - th[b]) * z[b, a] for b in range(n_params)) for a in range(n)]
+    # the corner's M and r in one kernel (else XLA splits th's rows into kernels of their own)
+    kept = materialise([entry for row in m_c for entry in row] + r_c)
+    m_c = [[kept[a * (a + 1) // 2 + c] for c in range(a + 1)] for a in range(n)]
+    r_c = kept[n * (n + 1) // 2 :]
     lower, _, inv = ldl_factor(m_c, divide=False)
     gv = ldl_solve(lower, inv, r_c)  # n arrays (T,)
     q_t, qd_t = q.T, qd.T
@@ -379,4 +441,5 @@ def coupled_window_step(
         for a in range(n)
     ]
     kept = materialise(q_next + qd_next)
+    kept = [jnp.broadcast_to(a, (tracks,)) for a in kept]  # a shared start moves every track
     return jnp.stack([jnp.stack(kept[:n], axis=-1), jnp.stack(kept[n:], axis=-1)], axis=-1)

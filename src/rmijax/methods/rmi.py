@@ -352,6 +352,26 @@ def _window_extremes(t_f, data, model, mode, window, dt, search):
     )
 
 
+def _one_step_window(found, u_win, sigma, active, x0, onehot, box):
+    """A coupled window of one step: (4n,) ``c x(t_f)`` in track order, exactly as the scan.
+
+    Two savings, exact for the outputs: every track starts from ``x0``, so the search
+    takes the state once (``coupled_step`` with a ``(1, n, 2)`` state: terms and
+    factorisation shared, one row of ``M^-1`` per joint); and an encoder track's output
+    after the step, ``q + dt qd``, does not depend on the corner, so only the tachometer
+    tracks search. This is the online monitor's cheapest tick (``short_window``, N = 1).
+    """
+    n = onehot.shape[1]
+    dt = box[-1]
+    _, joint, sensor = _tracks(n)
+    enc, tach = np.flatnonzero(sensor == 0), np.flatnonzero(sensor == 1)
+    new = found.coupled_step(x0[None], u_win[0], sigma[0][tach], onehot[tach], *box)
+    speeds = jnp.where(active[0], new[np.arange(tach.size), joint[tach], 1], x0[joint[tach], 1])
+    q, qd = x0[joint[enc], 0], x0[joint[enc], 1]
+    positions = jnp.where(active[0], q + dt * qd, q)
+    return jnp.concatenate([positions, speeds])[np.argsort(np.concatenate([enc, tach]))]
+
+
 def window_extremes(u_win, xn_win, qddn_win, active, x0, consts, *, model, mode, dt, search="auto"):
     """RMI over one window whose inputs are given: (2, n, 2) [max/min, joint, sensor].
 
@@ -382,15 +402,19 @@ def window_extremes(u_win, xn_win, qddn_win, active, x0, consts, *, model, mode,
     box = (nominal, consts["lo"], consts["hi"], kp, kd, dt)
 
     if mode == "coupled" and hasattr(found, "coupled_step"):
+        onehot = np.eye(n, dtype=dtype)[joint]  # static: a search may read the layout
 
         def step(states, inputs):
             u, sigma_s, on = inputs
             new = found.coupled_step(states, u, sigma_s, onehot, *box)
             return jnp.where(on, new, states), None
 
-        init = jnp.broadcast_to(x0, (4 * n, n, 2))
-        final, _ = jax.lax.scan(step, init, (u_win, sigma, active))
-        values = final[np.arange(4 * n), joint, sensor]
+        if getattr(found, "shared_start", False) and u_win.shape[0] == 1:
+            values = _one_step_window(found, u_win, sigma, active, x0, onehot, box)
+        else:
+            init = jnp.broadcast_to(x0, (4 * n, n, 2))
+            final, _ = jax.lax.scan(step, init, (u_win, sigma, active))
+            values = final[np.arange(4 * n), joint, sensor]
     elif mode == "coupled":
 
         def track_step(x, sigma_t, onehot_t, u):
