@@ -247,7 +247,7 @@ def _setup_latency(args):
         os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
         jax.config.update("jax_cpu_enable_async_dispatch", False)
     args.cpus = sorted(os.sched_getaffinity(0))
-    args.async_dispatch = bool(jax.config.jax_cpu_enable_async_dispatch)
+    args.async_dispatch = bool(jax.config.values["jax_cpu_enable_async_dispatch"])
 
 
 def mon_window(method, window):

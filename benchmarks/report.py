@@ -157,24 +157,38 @@ def monitor_table():
     return _table(header, rows)
 
 
+MONITOR_ROBOT_FILES = (
+    "monitor_robots_cpu.json",
+    "monitor_robots_w1_cpu.json",
+    "monitor_robots_latency_cpu.json",
+    "monitor_robots_w1_latency_cpu.json",
+)
+"""The real-arm monitor results, each method's default window and N = 1; the default
+setup and ``--latency`` (synchronous dispatch, one pinned core)."""
+
+
 def real_arm_table():
     """Real arms: the monitor tick per method (with its fault-free false alarms) and the
     batched M + h throughput."""
-    monitor = _load("monitor_robots_cpu.json")
-    rows = [
-        (
-            r["robot"],
-            r["method"],
-            r["p"],
-            r["window"],
-            _ms(r["p50_ms"]),
-            _ms(r["p99_ms"]),
-            r["calls"],
-            r["fault_free_alarm_ticks"],
-        )
-        for r in monitor["results"]
-    ]
-    header = ("arm", "monitor method", "p", "N", "tick p50", "tick p99", "ticks timed")
+    rows = []
+    for name in MONITOR_ROBOT_FILES:
+        if not (RESULTS / name).exists():
+            continue
+        rows += [
+            (
+                r["robot"],
+                r["method"],
+                r["p"],
+                r["window"],
+                "latency" if r.get("latency_setup") else "default",
+                _ms(r["p50_ms"]),
+                _ms(r["p99_ms"]),
+                r["calls"],
+                r["fault_free_alarm_ticks"],
+            )
+            for r in _load(name)["results"]
+        ]
+    header = ("arm", "monitor method", "p", "N", "setup", "tick p50", "tick p99", "ticks timed")
     lines = [_table((*header, "false-alarm ticks (fault-free run)"), rows), ""]
     dynamics = _load("dynamics_cpu.json")
     rows = [
