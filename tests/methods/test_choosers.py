@@ -205,6 +205,19 @@ def arm3_case(tmp_path_factory):
     return params, traj, rmijax.rmi(traj, params, window=12, search="enumerate")
 
 
+def _declaring(params, declared):
+    """``params`` whose model declares less than ``load_robot``'s (``"chain"``: all of it)."""
+    keep = {
+        "chain": {},
+        "chain_vmap": dict(terms_tracks_last=None),  # terms of one state, by vmap
+        "dense": dict(reach=None),
+        "dense_bias": dict(reach=None, affine_joints=None),
+    }[declared]
+    structure = dataclasses.replace(params.model.structure, **keep)
+    model = dataclasses.replace(params.model, structure=structure)
+    return rmijax.uncertain_robot(model, params.nominal, params.lo, params.hi)
+
+
 @pytest.mark.parametrize("declared", ["chain", "chain_vmap", "dense", "dense_bias"])
 def test_real_arm_search_equals_enumeration(declared, arm3_case):
     """load_robot's LinearDynamics search equals enumeration in coupled mode, windows
@@ -214,14 +227,7 @@ def test_real_arm_search_equals_enumeration(declared, arm3_case):
     params, traj, enumerated = arm3_case
     structure = params.model.structure
     assert structure.reach == (0, 1, 2, 2, 0, 1, 2, 0, 1, 2)
-    if declared != "chain":  # the searches for models that promise less
-        keep = {
-            "chain_vmap": dict(terms_tracks_last=None),  # terms of one state, by vmap
-            "dense": dict(reach=None),
-            "dense_bias": dict(reach=None, affine_joints=None),
-        }[declared]
-        model = dataclasses.replace(params.model, structure=dataclasses.replace(structure, **keep))
-        params = rmijax.uncertain_robot(model, params.nominal, params.lo, params.hi)
+    params = _declaring(params, declared)
     structured = rmijax.rmi(traj, params, window=12)
     np.testing.assert_allclose(structured.lower, enumerated.lower, rtol=0, atol=1e-10)
     np.testing.assert_allclose(structured.upper, enumerated.upper, rtol=0, atol=1e-10)
@@ -235,10 +241,7 @@ def test_one_step_windows_equal_enumeration(declared, start, arm3_case):
     search the tachometer tracks only; the bounds equal enumeration's, the readings'
     start included (all tracks from one measured state)."""
     params, traj, _ = arm3_case
-    if declared == "dense_bias":
-        structure = dataclasses.replace(params.model.structure, reach=None, affine_joints=None)
-        model = dataclasses.replace(params.model, structure=structure)
-        params = rmijax.uncertain_robot(model, params.nominal, params.lo, params.hi)
+    params = _declaring(params, declared)
     th = np.asarray(params.nominal) + 0.5 * (np.asarray(params.hi) - np.asarray(params.nominal))
     _, readings = rmijax.simulate(traj, params, th)
     starts = None if start == "nominal" else jnp.asarray(readings)
