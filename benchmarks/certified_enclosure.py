@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import argparse
 import pathlib
-import re
 import sys
 import time
 
@@ -293,8 +292,7 @@ def scale_row(splits, scale, duration):
     try:
         _, cert = certified_bounds(traj, params, splits=splits, remainder_scale=scale)
     except DivergedError as error:
-        step = int(re.search(r"step (\d+)", str(error)).group(1))
-        return row | dict(diverged_at_step=step, diverged_at_s=step * traj.dt)
+        return row | dict(diverged_at_step=error.step, diverged_at_s=error.step * traj.dt)
     radius = 0.5 * (np.asarray(cert.hi) - np.asarray(cert.lo))  # (P, p)
     sens = np.abs(np.asarray(cert.sens)[:, :, :, 0, :])  # (P, T+1, n, p) encoder
     first = np.max(np.einsum("Pkip,Pp->Pki", sens, radius), axis=0)  # the widest piece

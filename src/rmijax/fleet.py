@@ -525,9 +525,12 @@ def certified_batch(
         low, high = lower[r, :length], upper[r, :length]
         where = _checks.first_non_finite(high, low)
         if where is not None:
-            raise DivergedError(
-                f"certified bounds of run {r} are not finite (step {where[0]}): the remainder "
-                "bound diverged. Narrow the box, split it (splits=...) or use stiffer gains."
+            step, joint, sensor = where
+            raise DivergedError.at(
+                where,
+                f"certified bounds of run {r} are not finite (step {step}, joint {joint} "
+                f"{DivergedError.SENSORS[sensor]}): the remainder bound diverged. Narrow the "
+                "box, split it (splits=...) or use stiffer gains.",
             )
         nominal = np.asarray(trajs[r].x_n)[:length]
         results.append(

@@ -10,7 +10,14 @@ import pytest
 import rmijax
 from rmijax.apps.experiments import paper_true_parameters
 from rmijax.detection.suite import default_fault_suite
-from rmijax.evaluation.comparison import Case, _Containment, compare, prefix, summary_rows
+from rmijax.evaluation.comparison import (
+    Case,
+    _Containment,
+    _timed_bounds,
+    compare,
+    prefix,
+    summary_rows,
+)
 from rmijax.methods.base import DivergedError
 
 
@@ -213,6 +220,11 @@ def test_a_method_that_diverges_is_reported_and_the_others_scored():
     with pytest.raises(DivergedError) as whole:
         rmijax.bounds(case.traj, wide, method="certified")
     assert step in str(whole.value)  # the probe's verdict is the whole run's
+    with pytest.raises(DivergedError) as probed:  # the probe's error keeps where it happened
+        _timed_bounds(case, "certified", None, {}, 5, 20)
+    where = (probed.value.step, probed.value.joint, probed.value.sensor)
+    assert where == (whole.value.step, whole.value.joint, whole.value.sensor)
+    assert probed.value.step is not None and probed.value.step < 20
     rows = summary_rows([result])
     assert [(r["method"], r["status"], r["cost_basis"]) for r in rows] == [
         ("empirical", "scored", "end step"),

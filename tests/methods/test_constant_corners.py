@@ -1,5 +1,7 @@
 """The envelope of constant-corner runs (issue 7): containment by construction, brute force."""
 
+import re
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -140,8 +142,10 @@ def test_diverging_corner_is_refused():
     traj = rmijax.trajectory(["sine"], duration=1.0)
     with pytest.raises(
         rmijax.DivergedError, match=r"constant-corner run diverged .* by step \d+ \(t = "
-    ):
+    ) as err:
         constant_corner_bounds(traj, params)
+    said = re.search(r"by step (\d+) .*joint (\d+) (\w+)\)", str(err.value)).groups()
+    assert (err.value.step, err.value.joint, err.value.sensor) == (int(said[0]), 0, said[2])
 
 
 @pytest.mark.parametrize(

@@ -2,6 +2,7 @@
 
 import dataclasses
 import itertools
+import re
 
 import jax.numpy as jnp
 import numpy as np
@@ -233,5 +234,7 @@ def test_diverging_window_is_refused():
     traj = rmijax.trajectory(["sine"], duration=1.5)
     with pytest.raises(
         rmijax.DivergedError, match=r"linearized bounds are not finite \(end step \d+, joint 0"
-    ):
+    ) as err:
         linearized_bounds(traj, params)
+    said = re.search(r"end step (\d+), joint 0 (\w+)\)", str(err.value)).groups()
+    assert (err.value.step, err.value.joint, err.value.sensor) == (int(said[0]), 0, said[1])

@@ -1,6 +1,7 @@
 """The RMI engine (SPEC sections 4-5) against the reference files and the NumPy reference."""
 
 import dataclasses
+import pickle
 
 import chex
 import jax
@@ -301,8 +302,42 @@ def test_diverged_bounds_are_refused():
     traj = rmijax.trajectory(["composite", "sine"], duration=3.0)
     params = rmijax.planar_arm([12.0, 10.0, 1.5, 1.0], [1.0, 1.0, 1.0, 0.5], [40.0, 40.0, 2.0, 1.5])
     for search in rmijax.SEARCHES:
-        with pytest.raises(rmijax.DivergedError, match=r"not finite \(end step \d+, joint"):
+        with pytest.raises(rmijax.DivergedError, match=r"not finite \(end step \d+, joint") as err:
             rmijax.rmi(traj, params, search=search)
+        # under jit nothing is checked: the same bands come back, and the error's
+        # attributes name their first non-finite output
+        bounds = jax.jit(lambda t, p, s=search: rmijax.rmi(t, p, search=s))(traj, params)
+        finite = np.isfinite(np.asarray(bounds.upper)) & np.isfinite(np.asarray(bounds.lower))
+        step, joint, sensor = np.argwhere(~finite)[0]
+        assert (err.value.step, err.value.joint) == (step, joint)
+        assert err.value.sensor == ("encoder", "tachometer")[sensor]
+        assert f"end step {step}, joint {joint} {err.value.sensor}" in str(err.value)
+
+
+def test_diverged_error_names_the_first_non_finite_output():
+    """Attributes from the first NaN or inf in step order (upper or lower), kept through
+    pickling (a process pool re-raises it in the parent)."""
+    from rmijax.methods import rmi as engine
+
+    upper = np.zeros((6, 3, 2))
+    lower = np.zeros((6, 3, 2))
+    upper[4, 0, 0] = np.nan
+    lower[3, 2, 1] = -np.inf  # earlier step: this one is named
+    bounds = rmijax.Bounds(
+        lower=jnp.asarray(lower),
+        upper=jnp.asarray(upper),
+        nominal=jnp.zeros((6, 3, 2)),
+        crossed=jnp.zeros((6, 3, 2), bool),
+        dt=0.01,
+    )
+    with pytest.raises(rmijax.DivergedError) as err:
+        engine._check_result(bounds)
+    assert (err.value.step, err.value.joint, err.value.sensor) == (3, 2, "tachometer")
+    again = pickle.loads(pickle.dumps(err.value))
+    assert (again.step, again.joint, again.sensor) == (3, 2, "tachometer")
+    assert str(again) == str(err.value)
+    with pytest.raises(ValueError, match="sensor must be one of"):
+        rmijax.DivergedError("x", sensor="gyro")
 
 
 # -- bad input -----------------------------------------------------------------------

@@ -145,7 +145,10 @@ def _timed_bounds(case, method, readings, options, timing_steps, probe_steps):
             except DivergedError as err:
                 raise DivergedError(
                     f"{err} [found on the first {int(probe_steps)} of {case.traj.n_steps} "
-                    "steps; the band is causal, so the whole run diverges there too]"
+                    "steps; the band is causal, so the whole run diverges there too]",
+                    step=err.step,
+                    joint=err.joint,
+                    sensor=err.sensor,
                 ) from err
         seconds = []
         for _ in range(2):

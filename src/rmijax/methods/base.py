@@ -46,7 +46,45 @@ ProblemTooLargeError = _checks.ProblemTooLargeError
 
 
 class DivergedError(ArithmeticError):
-    """The worst-case tracks of RMI left the floating-point range (the bounds are not finite)."""
+    """A method's bounds left the floating-point range (they are not finite).
+
+    Where it happened, for programs that react to it (the message says the same
+    in words):
+
+    Attributes:
+        step: the first step (or end step, for windowed methods) with a
+            non-finite bound, or None where the method cannot tell.
+        joint: that output's joint (0-based), or None.
+        sensor: ``"encoder"`` or ``"tachometer"``, or None.
+    """
+
+    SENSORS = ("encoder", "tachometer")
+
+    def __init__(self, message, *, step=None, joint=None, sensor=None):
+        super().__init__(message)
+        if sensor is not None and sensor not in self.SENSORS:
+            raise ValueError(f"sensor must be one of {self.SENSORS} or None, got {sensor!r}")
+        self.step = None if step is None else int(step)
+        self.joint = None if joint is None else int(joint)
+        self.sensor = sensor
+
+    @classmethod
+    def at(cls, where, message):
+        """The error for an output index ``where = (step, joint, sensor)`` (sensor 0 or 1),
+        as :func:`rmijax._checks.first_non_finite` returns it; ``(joint, sensor)`` without
+        a step."""
+        *step, joint, sensor = where
+        return cls(message, step=step[0] if step else None, joint=joint, sensor=cls.SENSORS[sensor])
+
+    def __reduce__(self):  # keep the attributes through pickling (process pools)
+        return (
+            _diverged,
+            (str(self), dict(step=self.step, joint=self.joint, sensor=self.sensor)),
+        )
+
+
+def _diverged(message, where):
+    return DivergedError(message, **where)
 
 
 def check_types(traj, params):

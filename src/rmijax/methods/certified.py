@@ -752,10 +752,11 @@ def certified_bounds(
     where = _checks.first_non_finite(upper, lower)
     if where is not None:
         step, joint, sensor = where
-        raise DivergedError(
+        raise DivergedError.at(
+            where,
             f"certified bounds are not finite (step {step}, joint {joint} "
             f"{('encoder', 'tachometer')[sensor]}): the remainder bound diverged. Narrow the "
-            "parameter box, split it (splits=...) or use stiffer gains."
+            "parameter box, split it (splits=...) or use stiffer gains.",
         )
     bounds = Bounds(lower=lower, upper=upper, nominal=traj.x_n, crossed=upper < lower, dt=traj.dt)
     certificate = Certificate(

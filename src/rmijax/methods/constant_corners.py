@@ -256,12 +256,13 @@ def _check_finite_envelope(low, high, dt):
     where = _checks.first_non_finite(low, high)
     if where is not None:
         step, joint, sensor = where
-        raise DivergedError(
+        raise DivergedError.at(
+            where,
             f"a constant-corner run diverged (|state| > {DIVERGENCE_LIMIT:g} or non-finite) "
             f"by step {step} (t = {step * dt:.2f} s, joint {joint} "
             f"{'encoder' if sensor == 0 else 'tachometer'}): the closed loop is unstable for "
             "some corner of the box. Narrow the parameter box (lo, hi) or use stiffer "
-            "gains (kp, kd)."
+            "gains (kp, kd).",
         )
 
 

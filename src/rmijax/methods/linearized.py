@@ -232,10 +232,11 @@ def _check_finite(bounds):
     where = _checks.first_non_finite(bounds.upper, bounds.lower)
     if where is not None:
         step, joint, sensor = where
-        raise engine.DivergedError(
+        raise engine.DivergedError.at(
+            where,
             f"linearized bounds are not finite (end step {step}, joint {joint} "
             f"{('encoder', 'tachometer')[sensor]}): the constant-parameter window diverged. "
-            "Narrow the parameter box (lo, hi), shorten the window or use stiffer gains."
+            "Narrow the parameter box (lo, hi), shorten the window or use stiffer gains.",
         )
 
 

@@ -544,11 +544,12 @@ def _check_result(bounds):
     if where is not None:
         sensor = "encoder" if where[-1] == 0 else "tachometer"
         at = f"end step {where[0]}, " if len(where) == 3 else ""
-        raise DivergedError(
+        raise DivergedError.at(
+            where,
             f"RMI bounds are not finite ({at}joint {where[-2]} {sensor}): the worst-case "
             "tracks diverged, because with the parameter chosen afresh at every step this "
             "closed loop is unstable over the window. Narrow the parameter box (lo, hi), "
-            "shorten the window or use stiffer gains (kp, kd)."
+            "shorten the window or use stiffer gains (kp, kd).",
         )
     _warn_crossed(bounds)
 
