@@ -304,6 +304,35 @@ def scale_row(splits, scale, duration):
     )
 
 
+def neumann_row(n, states=4, seed=0):
+    """How far the mass box moves ``M`` relative to itself: can ``M(th)^-1`` be enclosed
+    by a Neumann series around the nominal?
+
+    ``M`` is linear in the masses, ``M(th) = M_n (I + sum_k d_k M_n^-1 M_k)``, so
+    ``|M_n^-1 (M(th) - M_n)| <= G = sum_k r_k |M_n^-1 M_k|`` elementwise for every
+    mass in the box (lengths are left at nominal: ``G`` is a lower bound for the full box).
+    A Neumann enclosure needs ``||D^-1 G D|| < 1`` for some positive diagonal ``D``; the
+    smallest such norm is ``G``'s Perron root, the unscaled one the row-sum norm. At the
+    start state of the sine run (``q = 0``) and at ``states - 1`` uniform random states.
+    """
+    params, traj = _start(n)
+    nominal = jnp.asarray(params.nominal)
+    radius = 0.5 * (np.asarray(params.hi) - np.asarray(params.lo))
+    rng = np.random.default_rng(seed)
+    angles = [np.asarray(traj.x_n[0][:, 0])] + [
+        rng.uniform(-np.pi, np.pi, n) for _ in range(states - 1)
+    ]
+    norms, roots = [], []
+    for q in angles:
+        mass = lambda th, q=q: params.model.mass_matrix(jnp.asarray(q), th)  # noqa: E731
+        inverse = np.linalg.inv(np.asarray(mass(nominal)))
+        slopes = np.asarray(jax.jacfwd(mass)(nominal))  # (n, n, p): dM/dth_k
+        g = sum(radius[k] * np.abs(inverse @ slopes[:, :, k]) for k in range(n))
+        norms.append(float(np.max(g.sum(axis=1))))
+        roots.append(float(np.max(np.abs(np.linalg.eigvals(g)))))
+    return dict(links=n, states=states, row_sum_norm=norms, perron_root=roots)
+
+
 ENCLOSURE_COLUMNS = [
     ("links", "n", "{:>2d}"),
     ("box_fraction", "box", "{:>5.2f}"),
@@ -327,9 +356,24 @@ def main(argv=None):
         help="splits:remainder_scale runs of preset_arm(4)",
     )
     parser.add_argument("--duration", type=float, default=1.0, help="s, the scale runs")
+    parser.add_argument(
+        "--neumann",
+        action="store_true",
+        help="only the Neumann contraction factors of the mass box (neumann_row), seconds",
+    )
     parser.add_argument("--json", default=None, help="write results here")
     args = parser.parse_args(argv)
     meta = run_meta("benchmarks/certified_enclosure.py", argv, dtype="float64")
+    if args.neumann:
+        rows = [neumann_row(n) for n in args.links]
+        for row in rows:
+            print(
+                f"n={row['links']}: row-sum norm {np.round(row['row_sum_norm'], 3).tolist()}, "
+                f"Perron root {np.round(row['perron_root'], 3).tolist()}"
+            )
+        if args.json:
+            write_json(args.json, dict(neumann=rows), meta)
+        return
     rows = []
     for n in args.links:
         for fraction in args.fractions:
