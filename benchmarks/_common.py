@@ -117,8 +117,45 @@ def _machine():
     return f"{model or 'unknown CPU'}, {platform.machine()}, {os.cpu_count()} cores"
 
 
+def host_reference(calls=200):
+    """How fast this host is when the results are written, to compare runs made apart.
+
+    The same shared 2-core VM ran the same timed code 1.6x slower or faster within
+    hours, so a timing alone does not say whether code or host changed. Two fixed
+    workloads, timed when a results file is written (the end of its run):
+
+    - ``matmul_gflops``: float32 256 x 256 matrix products (jitted), ``2 * 256^3``
+      flops each, at the median call time: the arithmetic speed;
+    - ``dispatch_us``: the median wall time of a jitted function that returns its
+      input plus one (one tiny kernel): the fixed cost of a call (dispatch and thread
+      hand-offs), which bounds the shortest tick.
+    """
+    import jax
+    import jax.numpy as jnp
+
+    a = jnp.asarray(np.random.default_rng(0).standard_normal((256, 256)), jnp.float32)
+    matmul = jax.jit(lambda x: x @ x)
+    bump = jax.jit(lambda x: x + 1)
+    results = {}
+    for name, fn in (("matmul", matmul), ("dispatch", bump)):
+        fn(a).block_until_ready()
+        times = []
+        for _ in range(calls):
+            start = time.perf_counter()
+            fn(a).block_until_ready()
+            times.append(time.perf_counter() - start)
+        results[name] = float(np.median(times))
+    return {
+        "matmul_gflops": round(2 * 256**3 / results["matmul"] / 1e9, 2),
+        "dispatch_us": round(results["dispatch"] * 1e6, 1),
+    }
+
+
 def write_json(path, records, meta):
+    """Write ``{"meta": meta, "results": records}``; the meta gains the host's
+    :func:`host_reference` speed, measured now (the end of the run)."""
     if path:
+        meta = {**meta, "host_reference": host_reference()}
         with open(path, "w") as handle:
             json.dump({"meta": meta, "results": records}, handle, indent=2)
 

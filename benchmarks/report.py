@@ -420,6 +420,13 @@ def _load_avg(meta):
     return ", ".join(f"{x:.2f}" for x in load) if load else "not recorded"
 
 
+def _host_reference(meta):
+    ref = meta.get("host_reference")
+    if not ref:
+        return "not recorded"
+    return f"{ref['matmul_gflops']:.0f} GFLOP/s, {ref['dispatch_us']:.0f} us"
+
+
 def provenance():
     """Which command wrote each results file, from which commit, when, on what."""
     rows = []
@@ -440,9 +447,18 @@ def provenance():
                 date,
                 meta.get("dtype", "?"),
                 _load_avg(meta),
+                _host_reference(meta),
             )
         )
-    header = ("file", "command", "commit", "date", "dtype", "load (1/5/15 min)")
+    header = (
+        "file",
+        "command",
+        "commit",
+        "date",
+        "dtype",
+        "load (1/5/15 min)",
+        "host speed (matmul, call)",
+    )
     return _table(header, rows)
 
 

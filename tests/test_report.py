@@ -85,3 +85,19 @@ def test_whole_run_cost_and_refusals_are_labelled():
     unsupported = {"T": 1000, "methods": {}, "not_supported": {"certified": "planar only"}}
     assert report._case_rows("arm", unsupported)[0][2] == "not supported"
     assert report._refusal(scored, "certified") is None
+
+
+def test_results_files_record_the_host_speed(tmp_path):
+    """``write_json`` adds the host's reference speed, measured as the file is written,
+    and the provenance table shows it (or says it was not recorded, for older files)."""
+    common = load_benchmark("_common")
+    path = tmp_path / "run.json"
+    common.write_json(str(path), [{"x": 1}], {"command": "python benchmarks/x.py"})
+    records, meta = common.read_json(path)
+    reference = meta["host_reference"]
+    assert records == [{"x": 1}] and meta["command"] == "python benchmarks/x.py"
+    assert 0.1 < reference["matmul_gflops"] < 1e4  # any CPU from the last 20 years
+    assert 0.1 < reference["dispatch_us"] < 1e5
+    shown = report._host_reference(meta)
+    assert shown == (f"{reference['matmul_gflops']:.0f} GFLOP/s, {reference['dispatch_us']:.0f} us")
+    assert report._host_reference({"command": "old"}) == "not recorded"
