@@ -305,60 +305,70 @@ def scale_row(splits, scale, duration):
 
 
 def neumann_row(n, states=4, seed=0):
-    """How far the mass box moves ``M`` relative to itself: can ``M(th)^-1`` be enclosed
-    by a Neumann series around the nominal?
+    """How far the mass box moves ``M`` relative to itself, and how well the exact
+    second-order remainder of ``gv`` in the masses can be bounded without a Hessian.
 
     ``M`` is linear in the masses, ``M(th) = M_n (I + sum_k d_k M_n^-1 M_k)``, so
     ``|M_n^-1 (M(th) - M_n)| <= G = sum_k r_k |M_n^-1 M_k|`` elementwise for every
     mass in the box (lengths are left at nominal: ``G`` is a lower bound for the full box).
     A Neumann enclosure needs ``||D^-1 G D|| < 1`` for some positive diagonal ``D``; the
     smallest such norm is ``G``'s Perron root, the unscaled one the row-sum norm. At the
-    start state of the sine run (``q = 0``) and at ``states - 1`` uniform random states.
+    start state of the sine run (``q = qd = 0``) and at ``states - 1`` uniform random
+    states (``q`` in ``[-pi, pi]``, ``qd`` in ``[-1, 1]`` rad/s); the remainder bounds of
+    ``_mass_remainder`` at each. Lists are per state; the ``mass_*`` lists of the start
+    state are repeated under their old names.
     """
     params, traj = _start(n)
-    nominal = jnp.asarray(params.nominal)
     radius = 0.5 * (np.asarray(params.hi) - np.asarray(params.lo))
     rng = np.random.default_rng(seed)
-    angles = [np.asarray(traj.x_n[0][:, 0])] + [
-        rng.uniform(-np.pi, np.pi, n) for _ in range(states - 1)
+    x0 = np.asarray(traj.x_n[0])
+    points = [(x0[:, 0], x0[:, 1])] + [
+        (rng.uniform(-np.pi, np.pi, n), rng.uniform(-1.0, 1.0, n)) for _ in range(states - 1)
     ]
-    norms, roots = [], []
-    for q in angles:
-        mass = lambda th, q=q: params.model.mass_matrix(jnp.asarray(q), th)  # noqa: E731
-        inverse = np.linalg.inv(np.asarray(mass(nominal)))
-        slopes = np.asarray(jax.jacfwd(mass)(nominal))  # (n, n, p): dM/dth_k
-        g = sum(radius[k] * np.abs(inverse @ slopes[:, :, k]) for k in range(n))
-        norms.append(float(np.max(g.sum(axis=1))))
-        roots.append(float(np.max(np.abs(np.linalg.eigvals(g)))))
+    rows = [_mass_remainder(params, traj, radius, q, qd, seed) for q, qd in points]
+    per_state = {key: [row[key] for row in rows] for key in rows[0]}
     return dict(
         links=n,
         states=states,
-        row_sum_norm=norms,
-        perron_root=roots,
-        **_mass_remainder(params, traj, radius, seed),
+        angles=[np.asarray(q).tolist() for q, _ in points],
+        rates=[np.asarray(qd).tolist() for _, qd in points],
+        **per_state,
+        mass_first_order=rows[0]["first_order"],
+        mass_remainder_bound=rows[0]["bound_joint"],
+        mass_remainder_sampled=rows[0]["sampled"],
     )
 
 
-def _mass_remainder(params, traj, radius, seed, draws=300):
-    """At the start state, masses only (lengths at nominal): the exact second-order
-    remainder of ``gv`` in the masses, ``-M_n^-1 dM M(th)^-1 dM M_n^-1 B d``, bounded as
-    the identity allows, against its sampled size and the first-order range.
+def _mass_remainder(params, traj, radius, q, qd, seed, draws=300):
+    """At the state ``(q, qd)`` with the sine run's servo command, masses only (lengths at
+    nominal): the exact second-order remainder of ``gv`` in the masses, ``-T (I + T)^-1 T
+    w`` with ``T = M_n^-1 dM`` and ``w = M_n^-1 B d``, bounded two ways, against its
+    sampled size and the first-order range (all rad/s^2, per joint).
 
-    With ``C = M_n^-1`` and ``G = sum_k r_k |C M_k|`` (Perron root below 1):
-    ``|C B d| <= W = sum_k r_k |C B_k|``, ``|C dM y| <= G |y|`` and
-    ``|(I + C dM)^-1 z| <= (I - G)^-1 |z|``, so ``|rem| <= G (I - G)^-1 G W`` per joint
-    (rad/s^2). Sampled: all mass corners and ``draws`` uniform masses, ``gv`` minus
-    its second-order Taylor polynomial in the masses (autodiff of the model's own
-    ``M`` and ``h``).
+    *Joint coordinates* (``bound_joint``): with ``G = sum_k r_k |M_n^-1 M_k|`` (Perron root
+    below 1), ``|w| <= W = sum_k r_k |M_n^-1 B_k|``, ``|T y| <= G |y|`` and ``|(I + T)^-1
+    z| <= (I - G)^-1 |z|``, so ``|rem| <= G (I - G)^-1 G W``.
+
+    *Kinetic-energy norm* (``bound_energy``): every mass's term ``m_k M_k`` is positive
+    semidefinite (checked), so ``|x' dM x| <= rho x' M_n x`` with ``rho = max_k r_k /
+    m_k``; ``T`` is self-adjoint in ``<x, y> = x' M_n y`` with spectrum in ``[-rho, rho]``,
+    so ``||rem||_M <= rho^2 / (1 - rho) ||w||_M``, ``||w||_M <= sum_k r_k ||L^-1 B_k||``
+    (``M_n = L L'``) and ``|rem_i| <= sqrt((M_n^-1)_ii) ||rem||_M``. No absolute values of
+    matrix entries, so nothing is lost along the chain. Both bounds are sound, so is their
+    elementwise minimum (``bound_min``).
+
+    Sampled: all mass corners and ``draws`` uniform masses, ``gv`` minus its second-order
+    Taylor polynomial in the masses (autodiff of the model's own ``M`` and ``h``).
     """
     n = params.n_joints
     model, nominal = params.model, np.asarray(params.nominal)
-    x, u, kp, kd = (np.asarray(a) for a in (traj.x_n[0], traj.u_d[0], traj.kp, traj.kd))
-    q, qd = jnp.asarray(x[:, 0]), jnp.asarray(x[:, 1])
-    v = jnp.asarray(u - kd * x[:, 1] - kp * x[:, 0])
+    kp, kd, u = (np.asarray(a) for a in (traj.kp, traj.kd, traj.u_d[0]))
+    v = jnp.asarray(u - kd * np.asarray(qd) - kp * np.asarray(q))
+    q, qd = jnp.asarray(q), jnp.asarray(qd)
     force = lambda th: model.mass_matrix(q, th) @ v + model.bias(q, qd, th)  # noqa: E731
     mass = lambda th: model.mass_matrix(q, th)  # noqa: E731
-    inverse = np.linalg.inv(np.asarray(mass(jnp.asarray(nominal))))
+    m_n = np.asarray(mass(jnp.asarray(nominal)))
+    inverse = np.linalg.inv(m_n)
     slopes = np.asarray(jax.jacfwd(mass)(jnp.asarray(nominal)))[:, :, :n]  # (n, n, masses)
     columns = np.asarray(jax.jacfwd(force)(jnp.asarray(nominal)))[:, :n]  # (n, masses): B
     r = radius[:n]
@@ -366,7 +376,18 @@ def _mass_remainder(params, traj, radius, seed, draws=300):
     first = np.abs(inverse @ columns) @ r  # W: the first-order range per joint
     # y = (I + C dM)^-1 z solves y = z - C dM y, so |y| <= |z| + G |y| and, with the
     # Perron root of G below 1, |y| <= (I - G)^-1 |z| elementwise ((I - G)^-1 = sum G^k)
-    bound = g @ np.linalg.solve(np.eye(n) - g, g @ first)
+    bound_joint = g @ np.linalg.solve(np.eye(n) - g, g @ first)
+    semidefinite = min(
+        float(np.min(np.linalg.eigvalsh(nominal[k] * slopes[:, :, k]))) for k in range(n)
+    )
+    if semidefinite < -1e-9 * float(np.max(np.abs(m_n))):
+        raise ValueError(f"a mass's term of M is not positive semidefinite ({semidefinite})")
+    if not np.allclose(sum(nominal[k] * slopes[:, :, k] for k in range(n)), m_n, atol=1e-12):
+        raise ValueError("M is not the sum of its masses' terms: the energy bound needs it")
+    rho = float(np.max(r / nominal[:n]))
+    cholesky = np.linalg.cholesky(m_n)
+    w_norm = sum(r[k] * np.linalg.norm(np.linalg.solve(cholesky, columns[:, k])) for k in range(n))
+    bound_energy = np.sqrt(np.diag(inverse)) * rho**2 / (1.0 - rho) * w_norm
 
     def gv(masses):
         th = jnp.concatenate([masses, jnp.asarray(nominal[n:])])
@@ -378,15 +399,20 @@ def _mass_remainder(params, traj, radius, seed, draws=300):
     lo, hi = nominal[:n] - r, nominal[:n] + r
     corners = lo + (hi - lo) * np.array(list(np.ndindex(*(2,) * n)), float)
     uniform = lo + (hi - lo) * np.random.default_rng(seed).uniform(size=(draws, n))
-    worst = np.zeros(n)
-    for masses in np.concatenate([corners, uniform]):
-        d = masses - nominal[:n]
-        taylor = grad @ d + 0.5 * np.einsum("iab,a,b->i", hess, d, d)
-        worst = np.maximum(worst, np.abs(np.asarray(gv(jnp.asarray(masses))) - taylor))
+    points = np.concatenate([corners, uniform])
+    d = points - nominal[:n]
+    taylor = d @ grad.T + 0.5 * np.einsum("iab,sa,sb->si", hess, d, d)
+    values = np.asarray(jax.jit(jax.vmap(gv))(jnp.asarray(points)))
+    worst = np.max(np.abs(values - taylor), axis=0)
     return dict(
-        mass_first_order=first.tolist(),
-        mass_remainder_bound=bound.tolist(),
-        mass_remainder_sampled=worst.tolist(),
+        row_sum_norm=float(np.max(g.sum(axis=1))),
+        perron_root=float(np.max(np.abs(np.linalg.eigvals(g)))),
+        energy_rho=rho,
+        first_order=first.tolist(),
+        bound_joint=bound_joint.tolist(),
+        bound_energy=bound_energy.tolist(),
+        bound_min=np.minimum(bound_joint, bound_energy).tolist(),
+        sampled=worst.tolist(),
     )
 
 
@@ -426,11 +452,20 @@ def main(argv=None):
         for row in rows:
             print(
                 f"n={row['links']}: row-sum norm {np.round(row['row_sum_norm'], 3).tolist()}, "
-                f"Perron root {np.round(row['perron_root'], 3).tolist()}; at the start, "
-                f"masses only (max joint): first order {max(row['mass_first_order']):.3g}, "
-                f"remainder bound {max(row['mass_remainder_bound']):.3g}, "
-                f"sampled {max(row['mass_remainder_sampled']):.3g} rad/s^2"
+                f"Perron root {np.round(row['perron_root'], 3).tolist()}"
             )
+            for i in range(row["states"]):
+                sampled = np.asarray(row["sampled"][i])
+                ratio = {
+                    key: np.round(np.asarray(row[key][i]) / sampled, 1).tolist()
+                    for key in ("bound_joint", "bound_energy", "bound_min")
+                }
+                print(
+                    f"  state {i}: sampled remainder (max joint) {sampled.max():.3g} rad/s^2, "
+                    f"first order {max(row['first_order'][i]):.3g}; bound / sampled per "
+                    f"joint: joint coordinates {ratio['bound_joint']}, energy norm "
+                    f"{ratio['bound_energy']}, min {ratio['bound_min']}"
+                )
         if args.json:
             write_json(args.json, dict(neumann=rows), meta)
         return
