@@ -28,6 +28,15 @@ which it diverges, or the largest remainder against the first-order range.
 Run from the repository root (a few minutes on 2 cores):
 
     python benchmarks/certified_enclosure.py --json benchmarks/results/certified_enclosure_cpu.json
+
+With ``--neumann`` (about 10 minutes on 2 cores) it measures instead what a bound without
+a Hessian gives, where ``M`` is linear in the uncertain parameters: the exact second-order
+remainder of ``gv`` in them bounded in joint coordinates and in the kinetic-energy norm
+(``_mass_remainder``), against its sampled size, at four states each of ``preset_arm(2, 4,
+6)`` (masses) and of the shipped arms under their default box:
+
+    python benchmarks/certified_enclosure.py --neumann \\
+        --json benchmarks/results/certified_neumann_cpu.json
 """
 
 from __future__ import annotations
@@ -310,8 +319,8 @@ def neumann_row(n, states=4, seed=0):
 
     ``M`` is linear in the masses, ``M(th) = M_n (I + sum_k d_k M_n^-1 M_k)``, so
     ``|M_n^-1 (M(th) - M_n)| <= G = sum_k r_k |M_n^-1 M_k|`` elementwise for every
-    mass in the box (lengths are left at nominal: ``G`` is a lower bound for the full box).
-    A Neumann enclosure needs ``||D^-1 G D|| < 1`` for some positive diagonal ``D``; the
+    mass in the box (lengths are left at nominal: ``M`` is not linear in them). A
+    Neumann enclosure needs ``||D^-1 G D|| < 1`` for some positive diagonal ``D``; the
     smallest such norm is ``G``'s Perron root, the unscaled one the row-sum norm. At the
     start state of the sine run (``q = qd = 0``) and at ``states - 1`` uniform random
     states (``q`` in ``[-pi, pi]``, ``qd`` in ``[-1, 1]`` rad/s); the remainder bounds of
@@ -319,94 +328,135 @@ def neumann_row(n, states=4, seed=0):
     state are repeated under their old names.
     """
     params, traj = _start(n)
+    row = _remainder_row(params, traj, list(range(n)), states, seed)
+    return dict(
+        links=n,
+        **row,
+        mass_first_order=row["first_order"][0],
+        mass_remainder_bound=row["bound_joint"][0],
+        mass_remainder_sampled=row["sampled"][0],
+    )
+
+
+def real_arm_row(name, states=4, seed=0):
+    """``neumann_row`` for a shipped arm under its default box (body mass scales,
+    payload and friction, all varied: ``M`` and ``h`` are linear in every one), at the
+    start of the real-arm job's pick-and-place move and ``states - 1`` random states."""
+    from rmijax.apps.real_arm import real_arm_case
+
+    case = real_arm_case(name)
+    row = _remainder_row(case.params, case.traj, list(range(case.params.n_params)), states, seed)
+    return dict(robot=name, links=case.params.n_joints, **row)
+
+
+def _remainder_row(params, traj, varied, states, seed):
+    n = params.n_joints
     radius = 0.5 * (np.asarray(params.hi) - np.asarray(params.lo))
     rng = np.random.default_rng(seed)
     x0 = np.asarray(traj.x_n[0])
     points = [(x0[:, 0], x0[:, 1])] + [
         (rng.uniform(-np.pi, np.pi, n), rng.uniform(-1.0, 1.0, n)) for _ in range(states - 1)
     ]
-    rows = [_mass_remainder(params, traj, radius, q, qd, seed) for q, qd in points]
-    per_state = {key: [row[key] for row in rows] for key in rows[0]}
+    rows = [_mass_remainder(params, traj, radius, varied, q, qd, seed) for q, qd in points]
     return dict(
-        links=n,
         states=states,
+        varied=[params.model.param_names[k] for k in varied],
         angles=[np.asarray(q).tolist() for q, _ in points],
         rates=[np.asarray(qd).tolist() for _, qd in points],
-        **per_state,
-        mass_first_order=rows[0]["first_order"],
-        mass_remainder_bound=rows[0]["bound_joint"],
-        mass_remainder_sampled=rows[0]["sampled"],
+        **{key: [row[key] for row in rows] for key in rows[0]},
     )
 
 
-def _mass_remainder(params, traj, radius, q, qd, seed, draws=300):
-    """At the state ``(q, qd)`` with the sine run's servo command, masses only (lengths at
-    nominal): the exact second-order remainder of ``gv`` in the masses, ``-T (I + T)^-1 T
-    w`` with ``T = M_n^-1 dM`` and ``w = M_n^-1 B d``, bounded two ways, against its
-    sampled size and the first-order range (all rad/s^2, per joint).
+def _mass_remainder(params, traj, radius, varied, q, qd, seed, draws=300):
+    """At the state ``(q, qd)`` with the run's first servo command ``v``, the parameters
+    ``varied`` over their box (the others at nominal): the exact second-order remainder
+    of ``gv`` in them, ``-T (I + T)^-1 T w`` with ``T = M_n^-1 dM`` and ``w = M_n^-1 B d``
+    (``M`` and ``M v + h`` linear in the varied parameters, checked), bounded two ways,
+    against its sampled size and the first-order range (all rad/s^2, per joint).
 
     *Joint coordinates* (``bound_joint``): with ``G = sum_k r_k |M_n^-1 M_k|`` (Perron root
     below 1), ``|w| <= W = sum_k r_k |M_n^-1 B_k|``, ``|T y| <= G |y|`` and ``|(I + T)^-1
     z| <= (I - G)^-1 |z|``, so ``|rem| <= G (I - G)^-1 G W``.
 
-    *Kinetic-energy norm* (``bound_energy``): every mass's term ``m_k M_k`` is positive
-    semidefinite (checked), so ``|x' dM x| <= rho x' M_n x`` with ``rho = max_k r_k /
-    m_k``; ``T`` is self-adjoint in ``<x, y> = x' M_n y`` with spectrum in ``[-rho, rho]``,
-    so ``||rem||_M <= rho^2 / (1 - rho) ||w||_M``, ``||w||_M <= sum_k r_k ||L^-1 B_k||``
-    (``M_n = L L'``) and ``|rem_i| <= sqrt((M_n^-1)_ii) ||rem||_M``. No absolute values of
-    matrix entries, so nothing is lost along the chain. Both bounds are sound, so is their
-    elementwise minimum (``bound_min``).
+    *Kinetic-energy norm* (``bound_energy``): every parameter's slope ``M_k = dM/dth_k``
+    is positive semidefinite (checked: a mass, a body's inertia scale, a payload), so
+    ``|x' dM x| <= x' (sum_k r_k M_k) x <= rho x' M_n x`` with ``rho`` the largest
+    eigenvalue of ``L^-1 (sum_k r_k M_k) L^-T`` (``M_n = L L'``; 0.1 for masses +-10 %).
+    ``T`` is self-adjoint in ``<x, y> = x' M_n y`` with spectrum in ``[-rho, rho]``, so
+    ``||rem||_M <= rho^2 / (1 - rho) ||w||_M``, ``||w||_M <= sum_k r_k ||L^-1 B_k||``
+    and ``|rem_i| <= sqrt((M_n^-1)_ii) ||rem||_M``. No absolute values of matrix entries,
+    so nothing is lost along the chain. Both bounds are sound, so is their elementwise
+    minimum (``bound_min``).
 
-    Sampled: all mass corners and ``draws`` uniform masses, ``gv`` minus its second-order
-    Taylor polynomial in the masses (autodiff of the model's own ``M`` and ``h``).
+    Sampled: the corners of the parameters that move ``M`` (with the others at random
+    corners; at most 4096) and ``draws`` uniform points, ``gv`` minus its second-order
+    Taylor polynomial (autodiff of the model's own ``M`` and ``h``).
     """
-    n = params.n_joints
     model, nominal = params.model, np.asarray(params.nominal)
+    varied = np.asarray(varied)
     kp, kd, u = (np.asarray(a) for a in (traj.kp, traj.kd, traj.u_d[0]))
     v = jnp.asarray(u - kd * np.asarray(qd) - kp * np.asarray(q))
     q, qd = jnp.asarray(q), jnp.asarray(qd)
-    force = lambda th: model.mass_matrix(q, th) @ v + model.bias(q, qd, th)  # noqa: E731
-    mass = lambda th: model.mass_matrix(q, th)  # noqa: E731
-    m_n = np.asarray(mass(jnp.asarray(nominal)))
+
+    def full(sub):
+        return jnp.asarray(nominal).at[varied].set(sub)
+
+    force = lambda sub: model.mass_matrix(q, full(sub)) @ v + model.bias(q, qd, full(sub))  # noqa: E731
+    mass = lambda sub: model.mass_matrix(q, full(sub))  # noqa: E731
+    centre = jnp.asarray(nominal[varied])
+    r = radius[varied]
+    m_n = np.asarray(mass(centre))
     inverse = np.linalg.inv(m_n)
-    slopes = np.asarray(jax.jacfwd(mass)(jnp.asarray(nominal)))[:, :, :n]  # (n, n, masses)
-    columns = np.asarray(jax.jacfwd(force)(jnp.asarray(nominal)))[:, :n]  # (n, masses): B
-    r = radius[:n]
-    g = sum(r[k] * np.abs(inverse @ slopes[:, :, k]) for k in range(n))
+    slopes = np.asarray(jax.jacfwd(mass)(centre))  # (n, n, varied): dM/dth_k
+    columns = np.asarray(jax.jacfwd(force)(centre))  # (n, varied): B
+    probe = centre + r * np.random.default_rng(seed + 1).uniform(-1, 1, r.size)
+    scale = float(np.max(np.abs(m_n)))
+    for name, fn, slope in (("M", mass, slopes), ("M v + h", force, columns)):
+        if not np.allclose(fn(probe), fn(centre) + slope @ (probe - centre), atol=1e-9 * scale):
+            raise ValueError(f"{name} is not linear in the varied parameters: vary fewer")
+    least = min(float(np.min(np.linalg.eigvalsh(slopes[:, :, k]))) for k in range(r.size))
+    if least < -1e-9 * scale:
+        raise ValueError(f"a parameter's slope of M is not positive semidefinite ({least})")
+    g = sum(r[k] * np.abs(inverse @ slopes[:, :, k]) for k in range(r.size))
     first = np.abs(inverse @ columns) @ r  # W: the first-order range per joint
     # y = (I + C dM)^-1 z solves y = z - C dM y, so |y| <= |z| + G |y| and, with the
     # Perron root of G below 1, |y| <= (I - G)^-1 |z| elementwise ((I - G)^-1 = sum G^k)
-    bound_joint = g @ np.linalg.solve(np.eye(n) - g, g @ first)
-    semidefinite = min(
-        float(np.min(np.linalg.eigvalsh(nominal[k] * slopes[:, :, k]))) for k in range(n)
+    perron = float(np.max(np.abs(np.linalg.eigvals(g))))
+    bound_joint = (
+        g @ np.linalg.solve(np.eye(g.shape[0]) - g, g @ first)
+        if perron < 1
+        else np.full(first.shape, np.inf)
     )
-    if semidefinite < -1e-9 * float(np.max(np.abs(m_n))):
-        raise ValueError(f"a mass's term of M is not positive semidefinite ({semidefinite})")
-    if not np.allclose(sum(nominal[k] * slopes[:, :, k] for k in range(n)), m_n, atol=1e-12):
-        raise ValueError("M is not the sum of its masses' terms: the energy bound needs it")
-    rho = float(np.max(r / nominal[:n]))
     cholesky = np.linalg.cholesky(m_n)
-    w_norm = sum(r[k] * np.linalg.norm(np.linalg.solve(cholesky, columns[:, k])) for k in range(n))
-    bound_energy = np.sqrt(np.diag(inverse)) * rho**2 / (1.0 - rho) * w_norm
+    spread = np.einsum("ijk,k->ij", slopes, r)
+    whitened = np.linalg.solve(cholesky, np.linalg.solve(cholesky, spread).T)
+    rho = float(np.max(np.linalg.eigvalsh(0.5 * (whitened + whitened.T))))
+    w_norm = float(np.sum(r * np.linalg.norm(np.linalg.solve(cholesky, columns), axis=0)))
+    bound_energy = (
+        np.sqrt(np.diag(inverse)) * rho**2 / (1.0 - rho) * w_norm
+        if rho < 1
+        else np.full(first.shape, np.inf)
+    )
 
-    def gv(masses):
-        th = jnp.concatenate([masses, jnp.asarray(nominal[n:])])
-        return jnp.linalg.solve(mass(th), force(jnp.asarray(nominal)) - force(th))
+    def gv(sub):
+        return jnp.linalg.solve(mass(sub), force(centre) - force(sub))
 
-    centre = jnp.asarray(nominal[:n])
     grad = np.asarray(jax.jacfwd(gv)(centre))
     hess = np.asarray(jax.hessian(gv)(centre))
-    lo, hi = nominal[:n] - r, nominal[:n] + r
-    corners = lo + (hi - lo) * np.array(list(np.ndindex(*(2,) * n)), float)
-    uniform = lo + (hi - lo) * np.random.default_rng(seed).uniform(size=(draws, n))
-    points = np.concatenate([corners, uniform])
-    d = points - nominal[:n]
+    lo, hi = np.asarray(centre) - r, np.asarray(centre) + r
+    rng = np.random.default_rng(seed)
+    moving = np.flatnonzero(np.abs(slopes).max(axis=(0, 1)) > 0)[:12]
+    signs = rng.integers(0, 2, size=(2**moving.size, r.size)).astype(float)
+    signs[:, moving] = np.array(list(np.ndindex(*(2,) * moving.size)), float)
+    uniform = rng.uniform(size=(draws, r.size))
+    points = lo + (hi - lo) * np.concatenate([signs, uniform])
+    d = points - np.asarray(centre)
     taylor = d @ grad.T + 0.5 * np.einsum("iab,sa,sb->si", hess, d, d)
     values = np.asarray(jax.jit(jax.vmap(gv))(jnp.asarray(points)))
     worst = np.max(np.abs(values - taylor), axis=0)
     return dict(
         row_sum_norm=float(np.max(g.sum(axis=1))),
-        perron_root=float(np.max(np.abs(np.linalg.eigvals(g)))),
+        perron_root=perron,
         energy_rho=rho,
         first_order=first.tolist(),
         bound_joint=bound_joint.tolist(),
@@ -442,16 +492,24 @@ def main(argv=None):
     parser.add_argument(
         "--neumann",
         action="store_true",
-        help="only the mass box's Neumann factors and remainder bound (neumann_row), seconds",
+        help="only the Hessian-free remainder bounds (neumann_row, real_arm_row), minutes",
+    )
+    parser.add_argument(
+        "--robots",
+        nargs="*",
+        default=["panda", "iiwa14", "ur5e"],
+        help="--neumann: shipped arms under their default box, besides preset_arm(--links)",
     )
     parser.add_argument("--json", default=None, help="write results here")
     args = parser.parse_args(argv)
     meta = run_meta("benchmarks/certified_enclosure.py", argv, dtype="float64")
     if args.neumann:
         rows = [neumann_row(n) for n in args.links]
+        rows += [real_arm_row(name) for name in args.robots]
         for row in rows:
             print(
-                f"n={row['links']}: row-sum norm {np.round(row['row_sum_norm'], 3).tolist()}, "
+                f"{row.get('robot', 'preset_arm')} n={row['links']}: row-sum norm "
+                f"{np.round(row['row_sum_norm'], 3).tolist()}, "
                 f"Perron root {np.round(row['perron_root'], 3).tolist()}"
             )
             for i in range(row["states"]):
@@ -464,7 +522,8 @@ def main(argv=None):
                     f"  state {i}: sampled remainder (max joint) {sampled.max():.3g} rad/s^2, "
                     f"first order {max(row['first_order'][i]):.3g}; bound / sampled per "
                     f"joint: joint coordinates {ratio['bound_joint']}, energy norm "
-                    f"{ratio['bound_energy']}, min {ratio['bound_min']}"
+                    f"{ratio['bound_energy']}, min {ratio['bound_min']} (rho "
+                    f"{row['energy_rho'][i]:.3f})"
                 )
         if args.json:
             write_json(args.json, dict(neumann=rows), meta)
