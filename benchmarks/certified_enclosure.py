@@ -60,7 +60,10 @@ import rmijax  # noqa: E402
 from rmijax._intervals import Interval, Jet  # noqa: E402
 from rmijax.methods.base import DivergedError  # noqa: E402
 from rmijax.methods.certified import (  # noqa: E402
+    _certify,
     _evaluate,
+    _pieces,
+    _split_counts,
     certified_bounds,
     planar_perturbation_jets,
 )
@@ -466,6 +469,46 @@ def _mass_remainder(params, traj, radius, varied, q, qd, seed, draws=300):
     )
 
 
+BLOCKS = ("linear", "mm", "ml", "mx", "lm", "ll", "lx", "xm", "xl", "xx")
+"""The parts of ``w_k`` (``certified``'s ``w_blocks``): the first-order terms in the
+remainder and noise, then the quadratic term by blocks of masses (m), lengths (l) and
+remainder/noise (x)."""
+
+
+def blocks_row(n, splits, duration, kernel_steps=400, segments=3):
+    """Where ``certified``'s remainder input ``w_k`` comes from on ``preset_arm(n)``
+    (sine on every joint, each parameter range in ``splits`` parts): per step until the
+    bound diverges (or ``duration`` ends), the share of each block of ``BLOCKS`` in ``w_k``
+    of the last joint's velocity, in the piece where ``w_k`` is largest."""
+    params = rmijax.preset_arm(n)
+    traj = rmijax.trajectory(["sine"] * n, duration=duration)
+    centers, los, his = _pieces(params, _split_counts(params, splits))
+    zeros = jnp.zeros((n, 2))
+    pieces, _, _ = _certify(
+        traj,
+        params,
+        jnp.asarray(centers),
+        jnp.asarray(los),
+        jnp.asarray(his),
+        zeros,
+        zeros,
+        jnp.asarray(1.0),
+        noisy=False,
+        kernel_steps=kernel_steps,
+        segments=segments,
+    )
+    blocks = np.asarray(pieces["w_blocks"])[:, :, -1, :]  # (P, T, 10): last joint
+    total = blocks.sum(axis=-1)  # (P, T)
+    finite = np.isfinite(total).all(axis=0) & (total.max(axis=0) < 1e6)
+    steps = int(np.argmin(finite)) if not finite.all() else total.shape[1]
+    rows = []
+    for k in range(steps):
+        piece = int(np.argmax(total[:, k]))
+        share = dict(zip(BLOCKS, (blocks[piece, k] / total[piece, k]).tolist(), strict=True))
+        rows.append(dict(step=k, w=float(total[piece, k]), **share))
+    return dict(links=n, splits=splits, duration=duration, steps=rows)
+
+
 ENCLOSURE_COLUMNS = [
     ("links", "n", "{:>2d}"),
     ("box_fraction", "box", "{:>5.2f}"),
@@ -500,9 +543,25 @@ def main(argv=None):
         default=["panda", "iiwa14", "ur5e"],
         help="--neumann: shipped arms under their default box, besides preset_arm(--links)",
     )
+    parser.add_argument(
+        "--blocks",
+        action="store_true",
+        help="only where certified's remainder input comes from (blocks_row), minutes",
+    )
     parser.add_argument("--json", default=None, help="write results here")
     args = parser.parse_args(argv)
     meta = run_meta("benchmarks/certified_enclosure.py", argv, dtype="float64")
+    if args.blocks:
+        rows = [blocks_row(2, 4, 0.3), blocks_row(4, 2, 0.3)]
+        for row in rows:
+            print(f"preset_arm({row['links']}), splits {row['splits']}: share of w_k by block")
+            print("step  w_k (rad/s^2, last joint)  " + "  ".join(f"{b:>6}" for b in BLOCKS))
+            for r in row["steps"]:
+                shares = "  ".join(f"{r[b]:6.3f}" for b in BLOCKS)
+                print(f"{r['step']:>4}  {r['w']:>10.3g}  {shares}")
+        if args.json:
+            write_json(args.json, dict(blocks=rows), meta)
+        return
     if args.neumann:
         rows = [neumann_row(n) for n in args.links]
         rows += [real_arm_row(name) for name in args.robots]

@@ -26,3 +26,23 @@ def test_mass_remainder_bounds_contain_the_samples_with_teeth():
     # (joint 2 at the start state, 4x), it is the tighter of the two.
     assert ratios["bound_energy"][0, 1] < ratios["bound_joint"][0, 1]
     assert np.allclose(row["bound_min"], np.minimum(row["bound_joint"], row["bound_energy"]))
+
+
+def test_remainder_input_blocks_add_up_to_the_certified_input():
+    import rmijax
+    from rmijax.methods.certified import certified_bounds
+
+    row = enclosure.blocks_row(2, 2, 0.05)
+    steps = row["steps"]
+    assert len(steps) == 5  # no divergence in 0.05 s
+    params = rmijax.preset_arm(2)
+    traj = rmijax.trajectory(["sine"] * 2, duration=0.05)
+    _, cert = certified_bounds(traj, params, splits=2)
+    # the certificate's input to the last joint's velocity: dt w (1 + a few eps) plus the
+    # centre's rounding, in the piece where it is largest
+    injected = np.max(np.asarray(cert.injected)[:, :, -1, 1], axis=0)
+    for k, step in enumerate(steps):
+        shares = np.array([step[b] for b in enclosure.BLOCKS])
+        assert np.all(shares >= 0.0) and abs(shares.sum() - 1.0) < 1e-12
+        assert np.isclose(traj.dt * step["w"], injected[k], rtol=1e-6), k
+    assert steps[0]["mx"] == 0.0 and steps[-1]["mx"] > 0.0  # the state enters after step 0

@@ -539,6 +539,19 @@ def _certify_piece(
         linear = g1.mag()[:, p:] * v_hat[None, p:]
         quadratic = spread * v_hat[None, :, None] * v_hat[None, None, :]
         w = _sum_up(linear, -1, m) + _sum_up(quadratic, (-2, -1), m * m)
+        # where w comes from (diagnostics, not part of the certificate): the first-order
+        # terms in (R, eta), and the quadratic term by blocks of (masses, lengths, R and
+        # eta) -- th = (m_1..m_n, l_1..l_n) on the planar arm
+        edges = (0, n, p, m)
+        blocks = jnp.stack(
+            [jnp.sum(linear, axis=-1)]
+            + [
+                jnp.sum(quadratic[:, a0:a1, b0:b1], axis=(-2, -1))
+                for a0, a1 in zip(edges[:-1], edges[1:], strict=True)
+                for b0, b1 in zip(edges[:-1], edges[1:], strict=True)
+            ],
+            axis=-1,
+        )  # (n, 10)
         w = w * (1.0 + 4 * _EPS) + _TINY
         injected = rounding.at[:, 1].add(up(dt * w) * scale)
         injected = injected * (1.0 + 4 * _EPS) + _TINY
@@ -551,7 +564,7 @@ def _certify_piece(
         )
         rhat_next = rhat_next * (1.0 + 4 * _EPS) + _TINY
         carry = (new[0], new[1], new[2], buf, tail_max, rhat_next)
-        return carry, (new[0], new[1], new[2], injected, rhat_next)
+        return carry, (new[0], new[1], new[2], injected, rhat_next, blocks)
 
     x0 = traj.x_n[0]
     init = (
@@ -562,7 +575,7 @@ def _certify_piece(
         jnp.zeros((n,), dtype),
         jnp.zeros((n, 2), dtype),
     )
-    _, (xs, ss, qs, injected, rhats) = jax.lax.scan(step, init, traj.u_d[:-1])
+    _, (xs, ss, qs, injected, rhats, blocks) = jax.lax.scan(step, init, traj.u_d[:-1])
     cat = lambda first, rest: jnp.concatenate([first[None], rest], 0)  # noqa: E731
     state = cat(x0, xs)
     sens = cat(init[1], ss)
@@ -577,6 +590,7 @@ def _certify_piece(
         sens2=sens2,
         injected=injected,
         remainder=remainder,
+        w_blocks=blocks,
         lower=band.lo,
         upper=band.hi,
     )
@@ -755,7 +769,7 @@ def certified_bounds(
         raise DivergedError.at(
             where,
             f"certified bounds are not finite (step {step}, joint {joint} "
-            f"{('encoder', 'tachometer')[sensor]}): the remainder bound diverged. Narrow the "
+            f"{DivergedError.SENSORS[sensor]}): the remainder bound diverged. Narrow the "
             "parameter box, split it (splits=...) or use stiffer gains.",
         )
     bounds = Bounds(lower=lower, upper=upper, nominal=traj.x_n, crossed=upper < lower, dt=traj.dt)

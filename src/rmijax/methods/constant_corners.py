@@ -260,7 +260,7 @@ def _check_finite_envelope(low, high, dt):
             where,
             f"a constant-corner run diverged (|state| > {DIVERGENCE_LIMIT:g} or non-finite) "
             f"by step {step} (t = {step * dt:.2f} s, joint {joint} "
-            f"{'encoder' if sensor == 0 else 'tachometer'}): the closed loop is unstable for "
+            f"{DivergedError.SENSORS[sensor]}): the closed loop is unstable for "
             "some corner of the box. Narrow the parameter box (lo, hi) or use stiffer "
             "gains (kp, kd).",
         )

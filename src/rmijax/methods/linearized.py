@@ -235,7 +235,7 @@ def _check_finite(bounds):
         raise engine.DivergedError.at(
             where,
             f"linearized bounds are not finite (end step {step}, joint {joint} "
-            f"{('encoder', 'tachometer')[sensor]}): the constant-parameter window diverged. "
+            f"{engine.DivergedError.SENSORS[sensor]}): the constant-parameter window diverged. "
             "Narrow the parameter box (lo, hi), shorten the window or use stiffer gains.",
         )
 

@@ -542,7 +542,7 @@ def _check_result(bounds):
         return
     where = _checks.first_non_finite(bounds.upper, bounds.lower)
     if where is not None:
-        sensor = "encoder" if where[-1] == 0 else "tachometer"
+        sensor = DivergedError.SENSORS[where[-1]]
         at = f"end step {where[0]}, " if len(where) == 3 else ""
         raise DivergedError.at(
             where,
