@@ -37,6 +37,16 @@ remainder of ``gv`` in them bounded in joint coordinates and in the kinetic-ener
 
     python benchmarks/certified_enclosure.py --neumann \\
         --json benchmarks/results/certified_neumann_cpu.json
+
+With ``--blocks`` (under a minute) it splits ``certified``'s remainder input ``w_k`` by
+source (``blocks_row``); with ``--tube`` (a few minutes) it sets the quadratic part of
+``w_k`` against the same quantity from sampled Hessians over the certificate's own tube
+(``tube_row``), which tells the enclosure's loss from the model's:
+
+    python benchmarks/certified_enclosure.py --blocks \\
+        --json benchmarks/results/certified_blocks_cpu.json
+    python benchmarks/certified_enclosure.py --tube \\
+        --json benchmarks/results/certified_tube_cpu.json
 """
 
 from __future__ import annotations
@@ -60,10 +70,8 @@ import rmijax  # noqa: E402
 from rmijax._intervals import Interval, Jet  # noqa: E402
 from rmijax.methods.base import DivergedError  # noqa: E402
 from rmijax.methods.certified import (  # noqa: E402
-    _certify,
+    _certify_box,
     _evaluate,
-    _pieces,
-    _split_counts,
     certified_bounds,
     planar_perturbation_jets,
 )
@@ -327,18 +335,10 @@ def neumann_row(n, states=4, seed=0):
     smallest such norm is ``G``'s Perron root, the unscaled one the row-sum norm. At the
     start state of the sine run (``q = qd = 0``) and at ``states - 1`` uniform random
     states (``q`` in ``[-pi, pi]``, ``qd`` in ``[-1, 1]`` rad/s); the remainder bounds of
-    ``_mass_remainder`` at each. Lists are per state; the ``mass_*`` lists of the start
-    state are repeated under their old names.
+    ``_mass_remainder`` at each. Lists are per state, the start state first.
     """
     params, traj = _start(n)
-    row = _remainder_row(params, traj, list(range(n)), states, seed)
-    return dict(
-        links=n,
-        **row,
-        mass_first_order=row["first_order"][0],
-        mass_remainder_bound=row["bound_joint"][0],
-        mass_remainder_sampled=row["sampled"][0],
-    )
+    return dict(links=n, **_remainder_row(params, traj, list(range(n)), states, seed))
 
 
 def real_arm_row(name, states=4, seed=0):
@@ -413,10 +413,12 @@ def _mass_remainder(params, traj, radius, varied, q, qd, seed, draws=300):
     slopes = np.asarray(jax.jacfwd(mass)(centre))  # (n, n, varied): dM/dth_k
     columns = np.asarray(jax.jacfwd(force)(centre))  # (n, varied): B
     probe = centre + r * np.random.default_rng(seed + 1).uniform(-1, 1, r.size)
-    scale = float(np.max(np.abs(m_n)))
     for name, fn, slope in (("M", mass, slopes), ("M v + h", force, columns)):
+        # tolerance in the function's own units: its size at the centre and over the box
+        scale = float(np.max(np.abs(fn(centre))) + np.max(np.abs(slope)) * np.max(r))
         if not np.allclose(fn(probe), fn(centre) + slope @ (probe - centre), atol=1e-9 * scale):
             raise ValueError(f"{name} is not linear in the varied parameters: vary fewer")
+    scale = float(np.max(np.abs(m_n)))
     least = min(float(np.min(np.linalg.eigvalsh(slopes[:, :, k]))) for k in range(r.size))
     if least < -1e-9 * scale:
         raise ValueError(f"a parameter's slope of M is not positive semidefinite ({least})")
@@ -482,20 +484,9 @@ def blocks_row(n, splits, duration, kernel_steps=400, segments=3):
     of the last joint's velocity, in the piece where ``w_k`` is largest."""
     params = rmijax.preset_arm(n)
     traj = rmijax.trajectory(["sine"] * n, duration=duration)
-    centers, los, his = _pieces(params, _split_counts(params, splits))
     zeros = jnp.zeros((n, 2))
-    pieces, _, _ = _certify(
-        traj,
-        params,
-        jnp.asarray(centers),
-        jnp.asarray(los),
-        jnp.asarray(his),
-        zeros,
-        zeros,
-        jnp.asarray(1.0),
-        noisy=False,
-        kernel_steps=kernel_steps,
-        segments=segments,
+    *_, pieces, _, _ = _certify_box(
+        traj, params, zeros, zeros, splits, kernel_steps, segments, diagnostics=True
     )
     blocks = np.asarray(pieces["w_blocks"])[:, :, -1, :]  # (P, T, 10): last joint
     total = blocks.sum(axis=-1)  # (P, T)
@@ -507,6 +498,99 @@ def blocks_row(n, splits, duration, kernel_steps=400, segments=3):
         share = dict(zip(BLOCKS, (blocks[piece, k] / total[piece, k]).tolist(), strict=True))
         rows.append(dict(step=k, w=float(total[piece, k]), **share))
     return dict(links=n, splits=splits, duration=duration, steps=rows)
+
+
+def tube_row(n, splits, steps, duration=0.3, samples=1500, seed=0, segments=3):
+    """How much of ``certified``'s remainder input the true Hessian needs, step by step.
+
+    ``certified`` bounds ``w_k`` by the spread of the Hessian of ``z -> gv(x(z), th(z))``
+    in ``z = (d, R)`` (``x = x_c + S_k d + 1/2 Q_k[d, d] + R``, ``th = th_c + d``), over
+    the boxes ``s_j Z`` of its radial segments (``Z``: the piece's radii and ``|R| <=
+    r_k``), enclosed by interval 2-jets and weighted by ``int (1 - s) ds``. Here the
+    same quantity from samples: in each segment's box, ``samples`` uniform points and
+    as many random corners, the entrywise largest ``|H(z) - H(0)|`` (autodiff of the
+    model's own ``M`` and ``h``; a *lower* bound of the best entrywise enclosure over
+    those boxes), weighted alike and summed by the blocks of :data:`BLOCKS` (masses,
+    lengths, remainder). ``preset_arm(n)``, sine on every joint, the last joint's
+    velocity, at each of ``steps`` in the piece where the certificate's ``w_k`` is
+    largest; the tube is the certificate's own (its ``S_k``, ``Q_k`` and ``r_k``).
+    """
+    from rmijax._linalg import ldl_factor, ldl_solve
+
+    params = rmijax.preset_arm(n)
+    traj = rmijax.trajectory(["sine"] * n, duration=duration)
+    zeros = jnp.zeros((n, 2))
+    centers, los, his, pieces, _, _ = _certify_box(
+        traj, params, zeros, zeros, splits, segments=segments, diagnostics=True
+    )
+    blocks = np.asarray(pieces["w_blocks"])[:, :, -1, :]  # (P, T, 10): last joint
+    model, nominal = params.model, jnp.asarray(params.nominal)
+    kp, kd = traj.kp, traj.kd
+    p = params.n_params
+    m = p + 2 * n
+    seg_hi = (np.arange(segments) + 1.0) / segments
+    seg_lo = np.arange(segments) / segments
+    weights = (seg_hi - seg_lo) - 0.5 * (seg_hi**2 - seg_lo**2)  # int (1 - s) ds
+    edges = (0, n, p, m)
+    spans = list(zip(edges[:-1], edges[1:], strict=True))
+
+    def last_joint_gv(z, xc, sens, sens2, center, u):
+        d, rem = z[:p], z[p:].reshape(n, 2)
+        x = xc + sens @ d + 0.5 * jnp.einsum("ijab,a,b->ij", sens2, d, d) + rem
+        q, qd, th = x[:, 0], x[:, 1], center + d
+        v = u - kd * qd - kp * q
+        tau = model.mass_matrix(q, nominal) @ v + model.bias(q, qd, nominal)
+        mass = model.mass_matrix(q, th)
+        # elementwise LDL' (a batched jnp.linalg.solve under vmap(hessian) hung XLA here)
+        lower, _, inv = ldl_factor([[mass[a, b] for b in range(n)] for a in range(n)])
+        rhs = tau - model.bias(q, qd, th)
+        return ldl_solve(lower, inv, [rhs[a] for a in range(n)])[-1] - v[-1]
+
+    hessian = jax.jit(
+        jax.vmap(jax.hessian(last_joint_gv), in_axes=(0, None, None, None, None, None))
+    )
+    rng = np.random.default_rng(seed)
+    rows = []
+    for k in steps:
+        piece = int(np.argmax(blocks[:, k].sum(axis=-1)))
+        args = (jnp.asarray(pieces[key][piece, k]) for key in ("state", "sens", "sens2"))
+        args = (*args, jnp.asarray(centers[piece]), traj.u_d[k])
+        radius = 0.5 * (np.asarray(his[piece]) - np.asarray(los[piece]))
+        rhat = np.asarray(pieces["remainder"][piece, k])
+        v_hat = np.concatenate([radius, rhat.reshape(-1)])
+        centre_h = np.asarray(hessian(jnp.zeros((1, m)), *args))[0]
+        spread = np.zeros((m, m))
+        for s_hi, weight in zip(seg_hi, weights, strict=True):
+            points = np.concatenate(
+                [rng.uniform(-1, 1, (samples, m)), rng.choice([-1.0, 1.0], (samples, m))]
+            )
+            worst = np.zeros((m, m))
+            for chunk in np.array_split(points * v_hat * s_hi, -(-2 * samples // 256)):
+                values = np.asarray(jax.block_until_ready(hessian(jnp.asarray(chunk), *args)))
+                worst = np.maximum(worst, np.max(np.abs(values - centre_h), axis=0))
+            spread += weight * worst
+        quadratic = spread * np.outer(v_hat, v_hat)
+        sampled = [float(quadratic[a0:a1, b0:b1].sum()) for a0, a1 in spans for b0, b1 in spans]
+        interval = blocks[piece, k, 1:].tolist()
+        rows.append(
+            dict(
+                step=k,
+                piece=piece,
+                remainder_max=float(rhat.max()),
+                interval=dict(zip(BLOCKS[1:], interval, strict=True)),
+                sampled=dict(zip(BLOCKS[1:], sampled, strict=True)),
+                interval_total=float(sum(interval)),
+                sampled_total=float(sum(sampled)),
+            )
+        )
+    return dict(
+        links=n,
+        splits=splits,
+        duration=duration,
+        samples=2 * samples,
+        segments=segments,
+        steps=rows,
+    )
 
 
 ENCLOSURE_COLUMNS = [
@@ -548,6 +632,12 @@ def main(argv=None):
         action="store_true",
         help="only where certified's remainder input comes from (blocks_row), minutes",
     )
+    parser.add_argument(
+        "--tube",
+        action="store_true",
+        help="only the remainder input's quadratic part against the sampled Hessian over "
+        "the same tube (tube_row), minutes",
+    )
     parser.add_argument("--json", default=None, help="write results here")
     args = parser.parse_args(argv)
     meta = run_meta("benchmarks/certified_enclosure.py", argv, dtype="float64")
@@ -561,6 +651,24 @@ def main(argv=None):
                 print(f"{r['step']:>4}  {r['w']:>10.3g}  {shares}")
         if args.json:
             write_json(args.json, dict(blocks=rows), meta)
+        return
+    if args.tube:
+        rows = [tube_row(2, 4, (0, 1, 2, 3, 9)), tube_row(4, 2, (0, 1, 2, 3))]
+        for row in rows:
+            print(f"preset_arm({row['links']}), splits {row['splits']}: quadratic part of w_k")
+            print("step  r_k max   interval   sampled  interval/sampled per block")
+            for r in row["steps"]:
+                ratios = "  ".join(
+                    f"{b} {r['interval'][b] / r['sampled'][b]:.0f}"
+                    for b in BLOCKS[1:]
+                    if r["sampled"][b] > 0
+                )
+                print(
+                    f"{r['step']:>4}  {r['remainder_max']:.3g}  {r['interval_total']:.3g}  "
+                    f"{r['sampled_total']:.3g}  {ratios}"
+                )
+        if args.json:
+            write_json(args.json, dict(tube=rows), meta)
         return
     if args.neumann:
         rows = [neumann_row(n) for n in args.links]

@@ -3,6 +3,9 @@ over the sampled masses, and are close enough that halving them would not."""
 
 import numpy as np
 
+import rmijax
+from rmijax.methods.certified import certified_bounds
+
 from helpers import load_benchmark
 
 enclosure = load_benchmark("certified_enclosure")
@@ -29,9 +32,6 @@ def test_mass_remainder_bounds_contain_the_samples_with_teeth():
 
 
 def test_remainder_input_blocks_add_up_to_the_certified_input():
-    import rmijax
-    from rmijax.methods.certified import certified_bounds
-
     row = enclosure.blocks_row(2, 2, 0.05)
     steps = row["steps"]
     assert len(steps) == 5  # no divergence in 0.05 s
@@ -46,3 +46,20 @@ def test_remainder_input_blocks_add_up_to_the_certified_input():
         assert np.all(shares >= 0.0) and abs(shares.sum() - 1.0) < 1e-12
         assert np.isclose(traj.dt * step["w"], injected[k], rtol=1e-6), k
     assert steps[0]["mx"] == 0.0 and steps[-1]["mx"] > 0.0  # the state enters after step 0
+
+
+def test_sampled_hessian_over_the_tube_stays_inside_the_interval_enclosure():
+    # The quadratic part of certified's remainder input against the same quantity from
+    # sampled Hessians over the certificate's own tube (the --tube measurement): every
+    # block's enclosure must hold the samples' spread, or the certificate is unsound.
+    row = enclosure.tube_row(2, 2, (0, 1, 3), duration=0.05, samples=100)
+    assert [step["step"] for step in row["steps"]] == [0, 1, 3]
+    for step in row["steps"]:
+        for block in enclosure.BLOCKS[1:]:
+            sampled, interval = step["sampled"][block], step["interval"][block]
+            assert sampled <= interval * (1.0 + 1e-9), (step["step"], block)
+        assert step["sampled_total"] > 0.0
+    first, last = row["steps"][0], row["steps"][-1]
+    # at step 0 the state is known: no remainder, so nothing in its blocks
+    assert first["remainder_max"] == 0.0 and first["sampled"]["xx"] == 0.0
+    assert last["remainder_max"] > 0.0 and last["sampled"]["mx"] > 0.0

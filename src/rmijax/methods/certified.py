@@ -459,12 +459,25 @@ def _evaluate(state, state_grad_d, sens2, th_value, noise_value, consts, remaind
 
 
 def _certify_piece(
-    center, lo, hi, traj, nominal, noise_lo, noise_hi, kernel, tail, noisy, scale, segments
+    center,
+    lo,
+    hi,
+    traj,
+    nominal,
+    noise_lo,
+    noise_hi,
+    kernel,
+    tail,
+    noisy,
+    scale,
+    segments,
+    diagnostics=False,
 ):
     """The Taylor-model induction over the whole run for one piece of the box.
 
     ``scale`` multiplies the remainder (1 in use; the tests' mutations set it to
-    0 or 0.5 to show that it matters).
+    0 or 0.5 to show that it matters). With ``diagnostics`` (static) the output also
+    holds ``w_blocks`` (T, n, 10): ``w_k`` split by source (see :func:`_w_blocks`).
     """
     n = traj.n_joints
     p = center.shape[0]
@@ -539,19 +552,7 @@ def _certify_piece(
         linear = g1.mag()[:, p:] * v_hat[None, p:]
         quadratic = spread * v_hat[None, :, None] * v_hat[None, None, :]
         w = _sum_up(linear, -1, m) + _sum_up(quadratic, (-2, -1), m * m)
-        # where w comes from (diagnostics, not part of the certificate): the first-order
-        # terms in (R, eta), and the quadratic term by blocks of (masses, lengths, R and
-        # eta) -- th = (m_1..m_n, l_1..l_n) on the planar arm
-        edges = (0, n, p, m)
-        blocks = jnp.stack(
-            [jnp.sum(linear, axis=-1)]
-            + [
-                jnp.sum(quadratic[:, a0:a1, b0:b1], axis=(-2, -1))
-                for a0, a1 in zip(edges[:-1], edges[1:], strict=True)
-                for b0, b1 in zip(edges[:-1], edges[1:], strict=True)
-            ],
-            axis=-1,
-        )  # (n, 10)
+        blocks = _w_blocks(linear, quadratic, n, p) if diagnostics else None
         w = w * (1.0 + 4 * _EPS) + _TINY
         injected = rounding.at[:, 1].add(up(dt * w) * scale)
         injected = injected * (1.0 + 4 * _EPS) + _TINY
@@ -584,21 +585,53 @@ def _certify_piece(
     low, high = _poly_range(sens, sens2, d_lo, d_hi)
     band = Interval(state) + Interval(low, high) + Interval(-remainder, remainder)
     band = band + Interval(*(jnp.broadcast_to(v, state.shape) for v in (noise_lo, noise_hi)))
-    return dict(
+    out = dict(
         state=state,
         sens=sens,
         sens2=sens2,
         injected=injected,
         remainder=remainder,
-        w_blocks=blocks,
         lower=band.lo,
         upper=band.hi,
     )
+    return out | (dict(w_blocks=blocks) if diagnostics else {})
 
 
-@functools.partial(jax.jit, static_argnames=("noisy", "kernel_steps", "segments"))
+def _w_blocks(linear, quadratic, n, p):
+    """Where ``w_k`` comes from (diagnostics, not part of the certificate): (n, 10).
+
+    The first-order terms in ``(R, eta)``, then the quadratic term by blocks of
+    masses, lengths and ``(R, eta)`` (``th = (m_1..m_n, l_1..l_n)`` on the planar
+    arm), row-major: mm, ml, mx, lm, ll, lx, xm, xl, xx.
+    """
+    edges = (0, n, p, quadratic.shape[-1])
+    spans = list(zip(edges[:-1], edges[1:], strict=True))
+    return jnp.stack(
+        [jnp.sum(linear, axis=-1)]
+        + [
+            jnp.sum(quadratic[:, a0:a1, b0:b1], axis=(-2, -1))
+            for a0, a1 in spans
+            for b0, b1 in spans
+        ],
+        axis=-1,
+    )
+
+
+@functools.partial(jax.jit, static_argnames=("noisy", "kernel_steps", "segments", "diagnostics"))
 def _certify(
-    traj, params, centers, los, his, noise_lo, noise_hi, scale, *, noisy, kernel_steps, segments
+    traj,
+    params,
+    centers,
+    los,
+    his,
+    noise_lo,
+    noise_hi,
+    scale,
+    *,
+    noisy,
+    kernel_steps,
+    segments,
+    diagnostics=False,
 ):
     kernel, tail = _kernel(traj.kp, traj.kd, traj.dt, kernel_steps)
     run = functools.partial(
@@ -612,6 +645,7 @@ def _certify(
         noisy=noisy,
         scale=scale,
         segments=segments,
+        diagnostics=diagnostics,
     )
     pieces = jax.vmap(run)(centers, los, his)
     return pieces, kernel, tail
@@ -659,6 +693,42 @@ def _split_counts(params, splits):
     if len(counts) != p or any(s < 1 for s in counts):
         raise ValueError(f"splits must be an int >= 1 or {p} ints >= 1, got {splits!r}")
     return counts
+
+
+def _certify_box(
+    traj,
+    params,
+    noise_lo,
+    noise_hi,
+    splits,
+    kernel_steps=KERNEL_STEPS,
+    segments=3,
+    remainder_scale=1.0,
+    diagnostics=False,
+):
+    """Split the box and certify every piece: ``(centers, los, his, pieces, kernel, tail)``.
+
+    Inputs as checked by :func:`certified_bounds` (noise bounds (n, 2) float64);
+    ``pieces`` holds each piece's arrays with a leading (P,) axis, and ``w_blocks``
+    with ``diagnostics``.
+    """
+    noisy = bool(np.any(np.asarray(noise_lo) != 0) or np.any(np.asarray(noise_hi) != 0))
+    centers, los, his = _pieces(params, _split_counts(params, splits))
+    pieces, kernel, tail = _certify(
+        traj,
+        params,
+        jnp.asarray(centers),
+        jnp.asarray(los),
+        jnp.asarray(his),
+        jnp.asarray(noise_lo),
+        jnp.asarray(noise_hi),
+        jnp.asarray(remainder_scale, jnp.asarray(noise_lo).dtype),
+        noisy=noisy,
+        kernel_steps=kernel_steps,
+        segments=segments,
+        diagnostics=diagnostics,
+    )
+    return centers, los, his, pieces, kernel, tail
 
 
 # --------------------------------------------------------------------------
@@ -744,22 +814,10 @@ def certified_bounds(
     lo_noise, hi_noise = _checks.noise_interval(noise_lo, noise_hi, n, dtype)
     lo_noise = jnp.broadcast_to(lo_noise, (n, 2))
     hi_noise = jnp.broadcast_to(hi_noise, (n, 2))
-    noisy = bool(np.any(np.asarray(lo_noise) != 0) or np.any(np.asarray(hi_noise) != 0))
     kernel_steps = _checks.positive_int("kernel_steps", kernel_steps, "steps")
     segments = _checks.positive_int("segments", segments)
-    centers, los, his = _pieces(params, _split_counts(params, splits))
-    pieces, kernel, tail = _certify(
-        traj,
-        params,
-        jnp.asarray(centers),
-        jnp.asarray(los),
-        jnp.asarray(his),
-        lo_noise,
-        hi_noise,
-        jnp.asarray(remainder_scale, dtype),
-        noisy=noisy,
-        kernel_steps=kernel_steps,
-        segments=segments,
+    centers, los, his, pieces, kernel, tail = _certify_box(
+        traj, params, lo_noise, hi_noise, splits, kernel_steps, segments, remainder_scale
     )
     lower = jnp.min(pieces["lower"], axis=0)
     upper = jnp.max(pieces["upper"], axis=0)
