@@ -72,6 +72,7 @@ from rmijax.methods.base import DivergedError  # noqa: E402
 from rmijax.methods.certified import (  # noqa: E402
     _certify_box,
     _evaluate,
+    _poly_range,
     certified_bounds,
     planar_perturbation_jets,
 )
@@ -570,6 +571,7 @@ def tube_row(n, splits, steps, duration=0.3, samples=1500, seed=0, segments=3):
                 worst = np.maximum(worst, np.max(np.abs(values - centre_h), axis=0))
             spread += weight * worst
         quadratic = spread * np.outer(v_hat, v_hat)
+        attribution = _tube_attribution(pieces, piece, k, centers, los, his, params, traj)
         sampled = [float(quadratic[a0:a1, b0:b1].sum()) for a0, a1 in spans for b0, b1 in spans]
         interval = blocks[piece, k, 1:].tolist()
         rows.append(
@@ -581,6 +583,7 @@ def tube_row(n, splits, steps, duration=0.3, samples=1500, seed=0, segments=3):
                 sampled=dict(zip(BLOCKS[1:], sampled, strict=True)),
                 interval_total=float(sum(interval)),
                 sampled_total=float(sum(sampled)),
+                attribution=attribution,
             )
         )
     return dict(
@@ -591,6 +594,53 @@ def tube_row(n, splits, steps, duration=0.3, samples=1500, seed=0, segments=3):
         segments=segments,
         steps=rows,
     )
+
+
+TUBE_VARIANTS = {
+    "point_state_no_chain": ("point", "zero"),
+    "box_state_no_chain": ("box", "zero"),
+    "point_state_centre_chain": ("point", "centre"),
+    "point_state_full_chain": ("point", "full"),
+    "box_state_centre_chain": ("box", "centre"),
+    "box_state_full_chain": ("box", "full"),
+}
+"""How the interval Hessian of ``gv`` at a tube step is evaluated in ``_tube_attribution``:
+the state's *value* as the tube's box or its centre point, and its derivatives in ``d``
+(the chain rule's ``S`` and ``Q``) left out (``zero``), at the centre (``S``, ``Q``) or
+as over the box (``S + Q d``, ``Q``; what ``certified`` does)."""
+
+
+def _tube_attribution(pieces, piece, k, centers, los, his, params, traj):
+    """The parameter-parameter quadratic of the Hessian spread at step ``k`` (last joint,
+    whole box, one segment: ``1/2 sum_ab |H_ab - H_ab(centre)| r_a r_b``, rad/s^2)
+    under each evaluation of :data:`TUBE_VARIANTS`: which part of the tube widens the
+    interval enclosure. Only the last variant is a sound enclosure over the tube; the
+    others leave part of it out, so they measure, not bound."""
+    p = params.n_params
+    consts = dict(nominal=params.nominal, u=traj.u_d[k], kp=traj.kp, kd=traj.kd)
+    centre = jnp.asarray(centers[piece])
+    d_box = Interval(jnp.asarray(los[piece]) - centre, jnp.asarray(his[piece]) - centre)
+    radius = 0.5 * (np.asarray(his[piece]) - np.asarray(los[piece]))
+    xc, sens, sens2, rhat = (
+        pieces[key][piece, k] for key in ("state", "sens", "sens2", "remainder")
+    )
+    _, _, centre_h = _evaluate(Interval(xc), Interval(sens), sens2, Interval(centre), None, consts)
+    low, high = _poly_range(sens, sens2, d_box.lo, d_box.hi)
+    tube = Interval(xc) + Interval(low, high) + Interval(-rhat, rhat)
+    out = {}
+    for name, (value, chain) in TUBE_VARIANTS.items():
+        state = tube if value == "box" else Interval(xc)
+        grad = {
+            "zero": Interval(jnp.zeros_like(sens)),
+            "centre": Interval(sens),
+            "full": Interval(sens) + (Interval(sens2) * d_box[None, None, None, :]).sum(-1),
+        }[chain]
+        second = jnp.zeros_like(sens2) if chain == "zero" else sens2
+        _, _, h_box = _evaluate(state, grad, second, Interval(centre) + d_box, None, consts)
+        mid = centre_h.mid()
+        spread = np.asarray(jnp.maximum(h_box.hi - mid, mid - h_box.lo))[-1, :p, :p]
+        out[name] = float(0.5 * np.sum(spread * np.outer(radius, radius)))
+    return out
 
 
 ENCLOSURE_COLUMNS = [
@@ -667,6 +717,8 @@ def main(argv=None):
                     f"{r['step']:>4}  {r['remainder_max']:.3g}  {r['interval_total']:.3g}  "
                     f"{r['sampled_total']:.3g}  {ratios}"
                 )
+                shown = ", ".join(f"{key} {value:.3g}" for key, value in r["attribution"].items())
+                print(f"      parameter block, one segment: {shown}")
         if args.json:
             write_json(args.json, dict(tube=rows), meta)
         return
