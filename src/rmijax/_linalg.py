@@ -2,7 +2,11 @@
 
 A batched ``jnp.linalg.solve`` over millions of ``n x n`` matrices is 8-80x
 slower on CPU than the factorisation written out on scalars (PERF_NOTES), so
-the planar arm's dynamics and the structured corner searches use these.
+the planar arm's dynamics and the structured corner searches use these. Under
+``vmap`` of reverse-mode derivatives in float64, jaxlib 0.10.2's batched LAPACK
+``trsm`` (behind ``jnp.linalg.solve`` and ``cho_solve``) also hung on large
+batches on this CPU (README, "Known problem"), so every ``M qdd = tau - h`` of
+the library goes through :func:`spd_solve`.
 """
 
 from __future__ import annotations
@@ -11,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["ldl_factor", "ldl_solve", "materialise", "reciprocal"]
+__all__ = ["ldl_factor", "ldl_solve", "materialise", "reciprocal", "spd_solve"]
 
 _SEED = {8: (np.int64(0x7FDE623822FC16E6), 5), 4: (np.int32(0x7EF311C3), 4)}
 """Per item size: the bit-trick constant of a reciprocal's seed and the Newton steps."""
@@ -81,6 +85,20 @@ def ldl_solve(lower, inv_diag, rhs):
             s = s - lower[k][i] * x[k]
         x[i] = s
     return x
+
+
+def spd_solve(matrix, rhs):
+    """Solve ``matrix x = rhs`` for a symmetric positive definite ``matrix`` (..., n, n).
+
+    ``LDL'`` without pivoting, written out element by element (``n`` static), so no
+    LAPACK call; ``rhs`` (..., n). Returns ``x`` (..., n). A mass matrix is positive
+    definite (``check_model`` refuses one that is not before any method runs).
+    """
+    size = matrix.shape[-1]
+    lower, _, inv_diag = ldl_factor(
+        [[matrix[..., a, b] for b in range(a + 1)] for a in range(size)]
+    )
+    return jnp.stack(ldl_solve(lower, inv_diag, [rhs[..., a] for a in range(size)]), -1)
 
 
 def materialise(arrays):

@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from rmijax import _checks
+from rmijax._linalg import spd_solve
 from rmijax.control import computed_torque, servo_command
 from rmijax.robots.box import UncertainRobot
 from rmijax.robots.check import check_model
@@ -219,7 +220,7 @@ def _locked_accelerations(model, q, qd, tau, th, locked):
     keep = ~locked
     both = keep[:, None] & keep[None, :]
     reduced = jnp.where(both, mass, 0.0) + jnp.diag(jnp.where(keep, 0.0, 1.0))
-    return jnp.linalg.solve(reduced, jnp.where(keep, rhs, 0.0))
+    return spd_solve(reduced, jnp.where(keep, rhs, 0.0))
 
 
 def _read(k, t, x, held, noise_k, tables, dt):

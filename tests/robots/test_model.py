@@ -125,3 +125,35 @@ def test_generic_accelerations_use_solve(rng):
     fast = rmijax.planar_arm_model(2).accelerations(q, qd, tau, th)
     np.testing.assert_allclose(model.accelerations(q, qd, tau, th), fast, rtol=1e-12)
     np.testing.assert_allclose(model.torques(q, qd, fast, th), tau, rtol=1e-11, atol=1e-10)
+
+
+@pytest.mark.parametrize("dtype, rtol", [(jnp.float64, 1e-12), (jnp.float32, 1e-4)])
+def test_spd_solve_equals_lapack_and_its_derivatives(rng, dtype, rtol):
+    # The library's M qdd = tau - h (spatial arms, user models, locked joints) is solved
+    # by the element-wise LDL' of rmijax._linalg.spd_solve, not LAPACK (README, "Known
+    # problem"): same answer as numpy's LU, batched, n = 1..7, and the same reverse-mode
+    # derivative as jnp.linalg.solve.
+    from rmijax._linalg import spd_solve
+
+    for n in range(1, 8):
+        basis = rng.normal(size=(20, n, n))
+        matrix = basis @ np.swapaxes(basis, 1, 2) + n * np.eye(n)
+        rhs = rng.normal(size=(20, n))
+        expected = np.linalg.solve(matrix, rhs[..., None])[..., 0]
+        got = spd_solve(jnp.asarray(matrix, dtype), jnp.asarray(rhs, dtype))
+        assert got.shape == (20, n) and got.dtype == dtype
+        np.testing.assert_allclose(got, expected, rtol=rtol, atol=rtol)
+
+        # reverse-mode: the derivative along a symmetric direction E (spd_solve reads
+        # only the lower triangle, so only symmetric directions are comparable)
+        direction = rng.normal(size=(20, n, n))
+        direction = jnp.asarray(direction + np.swapaxes(direction, 1, 2), dtype)
+        along = []
+        for solve in (spd_solve, jnp.linalg.solve):
+
+            def last(m, r, solve=solve):
+                return solve(m, r)[-1]
+
+            grad = jax.vmap(jax.grad(last))(jnp.asarray(matrix, dtype), jnp.asarray(rhs, dtype))
+            along.append(np.sum(np.asarray(grad) * np.asarray(direction), axis=(1, 2)))
+        np.testing.assert_allclose(along[0], along[1], rtol=10 * rtol, atol=10 * rtol)

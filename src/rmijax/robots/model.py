@@ -14,9 +14,9 @@ import dataclasses
 from collections.abc import Callable
 
 import jax
-import jax.numpy as jnp
 
 from rmijax import _checks
+from rmijax._linalg import spd_solve
 
 __all__ = ["GRAVITY", "RobotModel"]
 
@@ -92,10 +92,14 @@ class RobotModel:
             )
 
     def accelerations(self, q, qd, tau, th):
-        """Joint accelerations ``qdd = M(q; th)^-1 (tau - h(q, qd; th))``, shape ``(n,)``."""
+        """Joint accelerations ``qdd = M(q; th)^-1 (tau - h(q, qd; th))``, shape ``(n,)``.
+
+        The model's ``forward_dynamics`` where given, else ``M`` (positive definite)
+        solved by :func:`rmijax._linalg.spd_solve`.
+        """
         if self.forward_dynamics is not None:
             return self.forward_dynamics(q, qd, tau, th)
-        return jnp.linalg.solve(self.mass_matrix(q, th), tau - self.bias(q, qd, th))
+        return spd_solve(self.mass_matrix(q, th), tau - self.bias(q, qd, th))
 
     def torques(self, q, qd, qdd, th):
         """Inverse dynamics ``tau = M(q; th) qdd + h(q, qd; th)``, shape ``(n,)``."""

@@ -34,7 +34,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from rmijax._linalg import ldl_factor, ldl_solve, materialise
+from rmijax._linalg import materialise, spd_solve
 from rmijax.robots import _unrolled as _u
 from rmijax.robots.model import GRAVITY as _GRAVITY
 
@@ -467,19 +467,12 @@ def spatial_dynamics(
     def forward_dynamics(q, qd, tau, th):
         """qdd = M^-1 (tau - h), (n,) in rad/s^2 (m/s^2 for prismatic joints).
 
-        Solved by an ``LDL'`` factorisation written out element by element
-        (:mod:`rmijax._linalg`), not by LAPACK: under ``vmap`` of reverse-mode
-        derivatives in float64, jaxlib 0.10.2's batched ``trsm`` (which
-        ``cho_solve`` calls) hung on 20 000 items on the 2-core CPU (README,
-        "Known problem").
+        Solved by :func:`rmijax._linalg.spd_solve` (``LDL'`` written out element by
+        element), not by LAPACK: under ``vmap`` of reverse-mode derivatives in float64,
+        jaxlib 0.10.2's batched ``trsm`` (which ``cho_solve`` calls) hung on 20 000
+        items on the 2-core CPU (README, "Known problem").
         """
-        matrix = mass_matrix(q, th)
-        rhs = tau - bias(q, qd, th)
-        size = matrix.shape[-1]
-        lower, _, inv_diag = ldl_factor(
-            [[matrix[..., a, b] for b in range(a + 1)] for a in range(size)]
-        )
-        return jnp.stack(ldl_solve(lower, inv_diag, [rhs[..., a] for a in range(size)]), -1)
+        return spd_solve(mass_matrix(q, th), tau - bias(q, qd, th))
 
     frames = _unrolled_frames(chain)
     unit_masses = tuple(float(m) for m in chain.masses) + ((1.0,) if payload is not None else ())
