@@ -68,6 +68,7 @@ from _common import run_meta, table, write_json  # noqa: E402
 
 import rmijax  # noqa: E402
 from rmijax._intervals import Interval, Jet  # noqa: E402
+from rmijax.control import coupled_perturbation  # noqa: E402
 from rmijax.methods.base import DivergedError  # noqa: E402
 from rmijax.methods.certified import (  # noqa: E402
     _certify_box,
@@ -210,10 +211,7 @@ def _gv_function(params, traj):
     x, u, kp, kd = traj.x_n[0], traj.u_d[0], traj.kp, traj.kd
 
     def gv(th):
-        q, qd = x[:, 0], x[:, 1]
-        v = u - kd * qd - kp * q
-        tau = model.mass_matrix(q, nominal) @ v + model.bias(q, qd, nominal)
-        return jnp.linalg.solve(model.mass_matrix(q, th), tau - model.bias(q, qd, th)) - v
+        return coupled_perturbation(model, th, nominal, x[:, 0], x[:, 1], u, kp, kd)
 
     return gv
 
@@ -516,8 +514,6 @@ def tube_row(n, splits, steps, duration=0.3, samples=1500, seed=0, segments=3):
     velocity, at each of ``steps`` in the piece where the certificate's ``w_k`` is
     largest; the tube is the certificate's own (its ``S_k``, ``Q_k`` and ``r_k``).
     """
-    from rmijax._linalg import ldl_factor, ldl_solve
-
     params = rmijax.preset_arm(n)
     traj = rmijax.trajectory(["sine"] * n, duration=duration)
     zeros = jnp.zeros((n, 2))
@@ -538,14 +534,8 @@ def tube_row(n, splits, steps, duration=0.3, samples=1500, seed=0, segments=3):
     def last_joint_gv(z, xc, sens, sens2, center, u):
         d, rem = z[:p], z[p:].reshape(n, 2)
         x = xc + sens @ d + 0.5 * jnp.einsum("ijab,a,b->ij", sens2, d, d) + rem
-        q, qd, th = x[:, 0], x[:, 1], center + d
-        v = u - kd * qd - kp * q
-        tau = model.mass_matrix(q, nominal) @ v + model.bias(q, qd, nominal)
-        mass = model.mass_matrix(q, th)
-        # elementwise LDL' (a batched jnp.linalg.solve under vmap(hessian) hung XLA here)
-        lower, _, inv = ldl_factor([[mass[a, b] for b in range(n)] for a in range(n)])
-        rhs = tau - model.bias(q, qd, th)
-        return ldl_solve(lower, inv, [rhs[a] for a in range(n)])[-1] - v[-1]
+        gv = coupled_perturbation(model, center + d, nominal, x[:, 0], x[:, 1], u, kp, kd)
+        return gv[-1]
 
     hessian = jax.jit(
         jax.vmap(jax.hessian(last_joint_gv), in_axes=(0, None, None, None, None, None))
