@@ -6,7 +6,8 @@ the planar arm's dynamics and the structured corner searches use these. Under
 ``vmap`` of reverse-mode derivatives in float64, jaxlib 0.10.2's batched LAPACK
 ``trsm`` (behind ``jnp.linalg.solve`` and ``cho_solve``) also hung on large
 batches on this CPU (README, "Known problem"), so every ``M qdd = tau - h`` of
-the library goes through :func:`spd_solve`.
+the library goes through :func:`spd_solve`, which above :data:`UNROLL_MAX` joints
+loops over columns instead of writing the factorisation out.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["ldl_factor", "ldl_solve", "materialise", "reciprocal", "spd_solve"]
+__all__ = ["UNROLL_MAX", "ldl_factor", "ldl_solve", "materialise", "reciprocal", "spd_solve"]
 
 _SEED = {8: (np.int64(0x7FDE623822FC16E6), 5), 4: (np.int32(0x7EF311C3), 4)}
 """Per item size: the bit-trick constant of a reciprocal's seed and the Newton steps."""
@@ -87,18 +88,77 @@ def ldl_solve(lower, inv_diag, rhs):
     return x
 
 
+UNROLL_MAX = 8
+"""Largest ``n`` that :func:`spd_solve` writes out element by element.
+
+The written-out factorisation has ``O(n^3)`` scalar operations in the program; under
+forward-mode differentiation with many tangents its compile time grows fast (one
+16-link ``linearized`` test: 950 s instead of about 2 minutes through LAPACK). Above
+this size the factorisation runs as a loop over columns (:func:`_spd_solve_loop`)."""
+
+
 def spd_solve(matrix, rhs):
     """Solve ``matrix x = rhs`` for a symmetric positive definite ``matrix`` (..., n, n).
 
-    ``LDL'`` without pivoting, written out element by element (``n`` static), so no
-    LAPACK call; ``rhs`` (..., n). Returns ``x`` (..., n). A mass matrix is positive
-    definite (``check_model`` refuses one that is not before any method runs).
+    ``LDL'`` without pivoting and without a LAPACK call: written out element by
+    element up to :data:`UNROLL_MAX` joints (``n`` static), a loop over the columns
+    above. Only the lower triangle is read. ``rhs`` (..., n). Returns ``x`` (..., n).
+    A mass matrix is positive definite (``check_model`` refuses one that is not before
+    any method runs).
     """
     size = matrix.shape[-1]
+    if size > UNROLL_MAX:
+        return _spd_solve_loop(matrix, rhs)
     lower, _, inv_diag = ldl_factor(
         [[matrix[..., a, b] for b in range(a + 1)] for a in range(size)]
     )
     return jnp.stack(ldl_solve(lower, inv_diag, [rhs[..., a] for a in range(size)]), -1)
+
+
+def _spd_solve_loop(matrix, rhs):
+    """:func:`spd_solve` as ``fori_loop``s over columns: the program's size does not grow with n.
+
+    Column ``j``: ``d_j = A_jj - sum_(k<j) L_jk^2 d_k`` and ``L_ij = (A_ij - sum_(k<j) L_ik
+    L_jk d_k) / d_j`` for ``i > j`` (the same arithmetic as :func:`ldl_factor`, summed as
+    vectors); then ``L y = b`` forward and ``D L' x = y`` backward, one row per iteration.
+    """
+    size = matrix.shape[-1]
+    index = jnp.arange(size)
+    lower_part = jnp.tril(matrix)
+    sym = lower_part + jnp.swapaxes(jnp.tril(matrix, -1), -1, -2)  # the lower triangle's matrix
+
+    def factor(j, carry):
+        low, diag = carry
+        row = jnp.take(low, j, axis=-2)  # (..., n): L_jk, zero for k >= j
+        weighted = row * diag
+        d_j = jnp.take(jnp.take(sym, j, axis=-1), j, axis=-1) - jnp.sum(row * weighted, -1)
+        col = (jnp.take(sym, j, axis=-1) - jnp.einsum("...ik,...k->...i", low, weighted)) / d_j[
+            ..., None
+        ]
+        col = jnp.where(index > j, col, 0.0)
+        low = jnp.where(index[None, :] == j, col[..., :, None], low)
+        diag = jnp.where(index == j, d_j[..., None], diag)
+        return low, diag
+
+    low0 = jnp.zeros(sym.shape, sym.dtype)
+    diag0 = jnp.zeros(sym.shape[:-1], sym.dtype)
+    low, diag = jax.lax.fori_loop(0, size, factor, (low0, diag0))
+    rhs = jnp.broadcast_to(rhs, sym.shape[:-1]).astype(sym.dtype)
+
+    def forward(i, y):  # L y = b, unit lower L
+        y_i = jnp.take(rhs, i, axis=-1) - jnp.sum(jnp.take(low, i, axis=-2) * y, -1)
+        return jnp.where(index == i, y_i[..., None], y)
+
+    y = jax.lax.fori_loop(0, size, forward, jnp.zeros_like(rhs))
+
+    def backward(step, x):  # L' x = y / d, from the last row
+        i = size - 1 - step
+        x_i = jnp.take(y, i, axis=-1) / jnp.take(diag, i, axis=-1) - jnp.sum(
+            jnp.take(low, i, axis=-1) * x, -1
+        )
+        return jnp.where(index == i, x_i[..., None], x)
+
+    return jax.lax.fori_loop(0, size, backward, jnp.zeros_like(rhs))
 
 
 def materialise(arrays):

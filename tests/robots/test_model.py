@@ -131,11 +131,13 @@ def test_generic_accelerations_use_solve(rng):
 def test_spd_solve_equals_lapack_and_its_derivatives(rng, dtype, rtol):
     # The library's M qdd = tau - h (spatial arms, user models, locked joints) is solved
     # by the element-wise LDL' of rmijax._linalg.spd_solve, not LAPACK (README, "Known
-    # problem"): same answer as numpy's LU, batched, n = 1..7, and the same reverse-mode
-    # derivative as jnp.linalg.solve.
-    from rmijax._linalg import spd_solve
+    # problem"): same answer as numpy's LU, batched, n = 1..7 written out and 9, 16 by
+    # the column loop (above UNROLL_MAX), and the same reverse-mode derivative as
+    # jnp.linalg.solve.
+    from rmijax._linalg import UNROLL_MAX, spd_solve
 
-    for n in range(1, 8):
+    assert UNROLL_MAX == 8  # the sizes below cover both paths
+    for n in [*range(1, 8), 9, 16]:
         basis = rng.normal(size=(20, n, n))
         matrix = basis @ np.swapaxes(basis, 1, 2) + n * np.eye(n)
         rhs = rng.normal(size=(20, n))

@@ -468,9 +468,10 @@ def spatial_dynamics(
         """qdd = M^-1 (tau - h), (n,) in rad/s^2 (m/s^2 for prismatic joints).
 
         Solved by :func:`rmijax._linalg.spd_solve` (``LDL'`` written out element by
-        element), not by LAPACK: under ``vmap`` of reverse-mode derivatives in float64,
-        jaxlib 0.10.2's batched ``trsm`` (which ``cho_solve`` calls) hung on 20 000
-        items on the 2-core CPU (README, "Known problem").
+        element up to 8 joints, a column loop above), not by LAPACK: under ``vmap`` of
+        reverse-mode derivatives in float64, jaxlib 0.10.2's batched ``trsm`` (which
+        ``cho_solve`` calls) hung on 20 000 items on the 2-core CPU (README, "Known
+        problem").
         """
         return spd_solve(mass_matrix(q, th), tau - bias(q, qd, th))
 
