@@ -136,8 +136,8 @@ def _spd_solve_loop(matrix, rhs):
             ..., None
         ]
         col = jnp.where(index > j, col, 0.0)
-        low = jnp.where(index[None, :] == j, col[..., :, None], low)
-        diag = jnp.where(index == j, d_j[..., None], diag)
+        low = jax.lax.dynamic_update_slice_in_dim(low, col[..., :, None], j, axis=-1)
+        diag = jax.lax.dynamic_update_slice_in_dim(diag, d_j[..., None], j, axis=-1)
         return low, diag
 
     low0 = jnp.zeros(sym.shape, sym.dtype)
@@ -147,7 +147,7 @@ def _spd_solve_loop(matrix, rhs):
 
     def forward(i, y):  # L y = b, unit lower L
         y_i = jnp.take(rhs, i, axis=-1) - jnp.sum(jnp.take(low, i, axis=-2) * y, -1)
-        return jnp.where(index == i, y_i[..., None], y)
+        return jax.lax.dynamic_update_slice_in_dim(y, y_i[..., None], i, axis=-1)
 
     y = jax.lax.fori_loop(0, size, forward, jnp.zeros_like(rhs))
 
@@ -156,7 +156,7 @@ def _spd_solve_loop(matrix, rhs):
         x_i = jnp.take(y, i, axis=-1) / jnp.take(diag, i, axis=-1) - jnp.sum(
             jnp.take(low, i, axis=-1) * x, -1
         )
-        return jnp.where(index == i, x_i[..., None], x)
+        return jax.lax.dynamic_update_slice_in_dim(x, x_i[..., None], i, axis=-1)
 
     return jax.lax.fori_loop(0, size, backward, jnp.zeros_like(rhs))
 
