@@ -125,26 +125,23 @@ def _spd_solve_loop(matrix, rhs):
     """
     size = matrix.shape[-1]
     index = jnp.arange(size)
-    lower_part = jnp.tril(matrix)
-    sym = lower_part + jnp.swapaxes(jnp.tril(matrix, -1), -1, -2)  # the lower triangle's matrix
 
     def factor(j, carry):
         low, diag = carry
         row = jnp.take(low, j, axis=-2)  # (..., n): L_jk, zero for k >= j
         weighted = row * diag
-        d_j = jnp.take(jnp.take(sym, j, axis=-1), j, axis=-1) - jnp.sum(row * weighted, -1)
-        col = (jnp.take(sym, j, axis=-1) - jnp.einsum("...ik,...k->...i", low, weighted)) / d_j[
-            ..., None
-        ]
+        column = jnp.take(matrix, j, axis=-1)  # A_ij; only i >= j (the lower triangle) is kept
+        d_j = jnp.take(column, j, axis=-1) - jnp.sum(row * weighted, -1)
+        col = (column - jnp.einsum("...ik,...k->...i", low, weighted)) / d_j[..., None]
         col = jnp.where(index > j, col, 0.0)
         low = jax.lax.dynamic_update_slice_in_dim(low, col[..., :, None], j, axis=-1)
         diag = jax.lax.dynamic_update_slice_in_dim(diag, d_j[..., None], j, axis=-1)
         return low, diag
 
-    low0 = jnp.zeros(sym.shape, sym.dtype)
-    diag0 = jnp.zeros(sym.shape[:-1], sym.dtype)
+    low0 = jnp.zeros(matrix.shape, matrix.dtype)
+    diag0 = jnp.zeros(matrix.shape[:-1], matrix.dtype)
     low, diag = jax.lax.fori_loop(0, size, factor, (low0, diag0))
-    rhs = jnp.broadcast_to(rhs, sym.shape[:-1]).astype(sym.dtype)
+    rhs = jnp.broadcast_to(rhs, matrix.shape[:-1]).astype(matrix.dtype)
 
     def forward(i, y):  # L y = b, unit lower L
         y_i = jnp.take(rhs, i, axis=-1) - jnp.sum(jnp.take(low, i, axis=-2) * y, -1)
