@@ -52,6 +52,25 @@ def affine_window_numpy(traj, th, t_f, window):
     return np.stack([q, qd], axis=-1)
 
 
+def test_margin_corner_ties_take_lo_whatever_the_rounding():
+    """A parameter an output does not depend on has terms equal in exact arithmetic;
+    their rounding sign must not choose the remainder margin's corner (it did: on the
+    Panda job 476 coordinates changed side with a change of the solve's rounding)."""
+    lo, hi = jnp.array([1.0, -2.0, 0.5]), jnp.array([3.0, -1.0, 0.75])
+    for tiny in (1e-18, -1e-18, 1e-14, -1e-14):  # rounding-size gaps, either sign
+        up = jnp.array([[[0.7, 0.5 * tiny, -0.2]]])
+        down = jnp.array([[[-0.7, -0.5 * tiny, 0.1]]])
+        corners = np.asarray(linearized.margin_corners(up, down, lo, hi))
+        np.testing.assert_array_equal(corners[0, 0, 0], [3.0, -2.0, 0.5])  # max: hi, tie, lo
+        np.testing.assert_array_equal(corners[1, 0, 0], [1.0, -2.0, 0.75])  # min: lo, tie, hi
+    # a gap just above the tolerance (eps^(2/3) of the linear range 1.7) is no tie
+    gap = 2.0 * np.finfo(np.float64).eps ** (2.0 / 3.0) * 1.7
+    up = jnp.array([[[0.7, 0.5 * gap, -0.2]]])
+    down = jnp.array([[[-0.7, -0.5 * gap, 0.1]]])
+    corners = np.asarray(linearized.margin_corners(up, down, lo, hi))
+    assert corners[0, 0, 0, 1] == -1.0 and corners[1, 0, 0, 1] == -2.0
+
+
 @pytest.mark.parametrize("window", [7, 60])
 def test_exact_for_model_linear_in_parameters(window):
     params = rmijax.uncertain_robot(affine_model(), NOMINAL, LO, HI)

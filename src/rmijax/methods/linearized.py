@@ -14,7 +14,9 @@ tracks. With ``d+ = hi - th_n >= 0`` and ``d- = lo - th_n <= 0``:
 
 These are the exact extremes of the linearised output over the box, reached
 at the linearisation's extreme corner ``th*`` of each output and extreme
-(``hi_b`` where its term is the larger, ``lo_b`` otherwise; ties take ``lo_b``).
+(``hi_b`` where its term is the larger, ``lo_b`` otherwise; terms equal to within
+``eps^(2/3)`` of the output's linear range are ties and take ``lo_b``,
+:func:`margin_corners`).
 The *remainder margin* runs the true window once at each ``th*`` and widens the
 bound outwards by ``|y(th*) - y_lin(th*)|``, where ``y_lin(th*)`` is the
 bound itself: the upper bound by its own corner's remainder, the lower by its
@@ -127,6 +129,31 @@ def _sensitivity(run, nominal):
     return outputs[0], jnp.moveaxis(tangents, 0, -1)
 
 
+def margin_corners(up_term, down_term, lo, hi):
+    """The linearisation's extreme corner ``th*`` of every output and extreme.
+
+    Args:
+        up_term, down_term: ``S_b (hi_b - th_n_b)`` and ``S_b (lo_b - th_n_b)``, shape
+            ``(n, 2, p)`` (joint, sensor, parameter).
+        lo, hi: the box, shape ``(p,)``.
+
+    Returns:
+        ``(2, n, 2, p)``: ``[max, min]`` corners; the maximum's takes ``hi_b`` where
+        ``up_term`` is the larger, the minimum's where it is the smaller, by more than
+        the tie tolerance ``eps^(2/3)`` times the output's linear range ``sum_b |up_b -
+        down_b|`` (SPEC section 2's relative tolerance); ties take ``lo_b``. Without the
+        tolerance, terms that are equal in exact arithmetic (a parameter the output does
+        not depend on, such as the friction of a joint at rest: ``S_b`` of 1e-18 relative)
+        let roundoff choose the corner, and the remainder margin moved with any change
+        of the solve's rounding.
+    """
+    gap = up_term - down_term
+    scale = jnp.sum(jnp.abs(gap), axis=-1, keepdims=True)
+    tol = jnp.finfo(gap.dtype).eps ** (2.0 / 3.0) * scale
+    hi_b, lo_b = jnp.broadcast_to(hi, gap.shape), jnp.broadcast_to(lo, gap.shape)
+    return jnp.stack([jnp.where(gap > tol, hi_b, lo_b), jnp.where(gap < -tol, hi_b, lo_b)])
+
+
 def _end_step(t_f, data, model, window, dt, margin):
     """Linearised (and margin-widened) extremes of one end step: (2, n, 2).
 
@@ -154,11 +181,7 @@ def _end_step(t_f, data, model, window, dt, margin):
     lower = y_n + jnp.sum(jnp.minimum(up_term, down_term), axis=-1)
     if margin:
         n, p = y_n.shape[0], nominal.shape[0]
-        shape = (n, 2, p)
-        hi_b, lo_b = jnp.broadcast_to(hi, shape), jnp.broadcast_to(lo, shape)
-        corners = jnp.stack(
-            [jnp.where(up_term > down_term, hi_b, lo_b), jnp.where(up_term < down_term, hi_b, lo_b)]
-        )  # (2, n, 2, p): th* of every extreme and output
+        corners = margin_corners(up_term, down_term, lo, hi)  # (2, n, 2, p)
         runs = jax.vmap(run)(corners.reshape(4 * n, p)).reshape(2, n, 2, n, 2)
         joint, sensor = np.meshgrid(np.arange(n), np.arange(2), indexing="ij")
         own = runs[:, joint, sensor, joint, sensor]  # (2, n, 2): each run's own output
