@@ -47,6 +47,16 @@ source (``blocks_row``); with ``--tube`` (a few minutes) it sets the quadratic p
         --json benchmarks/results/certified_blocks_cpu.json
     python benchmarks/certified_enclosure.py --tube \\
         --json benchmarks/results/certified_tube_cpu.json
+
+The ``--tube`` rows also give the same quantity from a prototype affine backend
+(``_affine_hessian_box``). With ``--induction`` (about 3 minutes) it replays
+``certified``'s induction for one piece in numpy with either enclosure, and with the
+remainder propagated through the nominal loop (as ``certified``) or through the piece
+centre's own linearised loop (``induction_row``): does the affine enclosure keep 4 links
+bounded?
+
+    python benchmarks/certified_enclosure.py --induction \\
+        --json benchmarks/results/certified_induction_cpu.json
 """
 
 from __future__ import annotations
@@ -73,7 +83,10 @@ from rmijax.methods.base import DivergedError  # noqa: E402
 from rmijax.methods.certified import (  # noqa: E402
     _certify_box,
     _evaluate,
+    _kernel,
+    _pieces,
     _poly_range,
+    _split_counts,
     certified_bounds,
     planar_perturbation_jets,
 )
@@ -561,6 +574,12 @@ def tube_row(n, splits, steps, duration=0.3, samples=1500, seed=0, segments=3):
                 worst = np.maximum(worst, np.max(np.abs(values - centre_h), axis=0))
             spread += weight * worst
         quadratic = spread * np.outer(v_hat, v_hat)
+        piece_data = {key: pieces[key][piece, k] for key in ("state", "sens", "sens2")}
+        piece_data["center"] = centers[piece]
+        affine_q = _affine_tube_spread(
+            piece_data, radius, rhat, params, traj, k, seg_hi, weights
+        ) * np.outer(v_hat, v_hat)
+        affine = [float(affine_q[a0:a1, b0:b1].sum()) for a0, a1 in spans for b0, b1 in spans]
         attribution = _tube_attribution(pieces, piece, k, centers, los, his, params, traj)
         sampled = [float(quadratic[a0:a1, b0:b1].sum()) for a0, a1 in spans for b0, b1 in spans]
         interval = blocks[piece, k, 1:].tolist()
@@ -571,8 +590,10 @@ def tube_row(n, splits, steps, duration=0.3, samples=1500, seed=0, segments=3):
                 remainder_max=float(rhat.max()),
                 interval=dict(zip(BLOCKS[1:], interval, strict=True)),
                 sampled=dict(zip(BLOCKS[1:], sampled, strict=True)),
+                affine=dict(zip(BLOCKS[1:], affine, strict=True)),
                 interval_total=float(sum(interval)),
                 sampled_total=float(sum(sampled)),
+                affine_total=float(sum(affine)),
                 attribution=attribution,
             )
         )
@@ -584,6 +605,223 @@ def tube_row(n, splits, steps, duration=0.3, samples=1500, seed=0, segments=3):
         segments=segments,
         steps=rows,
     )
+
+
+def _affine_hessian_box(xc, sens, sens2, center, radius, rhat, scale, params, u, kp, kd):
+    """Hessian of ``gv`` (every joint) in ``z = (d, R)`` over the box ``scale Z`` of the
+    tube, by the prototype affine backend: ``(lo, hi)``, each (n, m, m).
+
+    The state enters as affine forms in the same symbols as the parameters, ``x = x_c +
+    S_k d + R`` exactly (the quadratic ``1/2 Q_k[d, d]`` as an error term), and its
+    gradient in ``d`` as ``S_k + Q_k d``, so the first-order dependence of the state on
+    the parameters, which interval arithmetic forgets, is kept. Rounding is not bounded
+    (a measurement, not a certificate)."""
+    n, p = xc.shape[0], params.n_params
+    m = p + 2 * n
+    backend = AffineBackend(m)
+    points = [[backend.point(v) for v in values] for values in (params.nominal, u, kp, kd)]
+    rad = np.concatenate([radius, np.reshape(rhat, -1)]) * scale  # symbol scales
+    state = []
+    for i in range(n):
+        for s in range(2):
+            unit = np.zeros(2 * n)
+            unit[2 * i + s] = 1.0
+            quad = 0.5 * np.sum(np.abs(sens2[i, s]) * np.outer(rad[:p], rad[:p]))
+            value = Affine(xc[i, s], np.concatenate([sens[i, s], unit]) * rad, quad)
+            grad_a = np.zeros((m, m))
+            grad_a[:p, :p] = sens2[i, s] * rad[None, :p]
+            hess = np.zeros((m, m))
+            hess[:p, :p] = sens2[i, s]
+            grad = Affine(np.concatenate([sens[i, s], unit]), grad_a, np.zeros(m))
+            state.append(Jet(value, grad, backend.point(hess), backend))
+    th = [
+        Jet(
+            Affine(center[b], np.eye(m)[b] * rad[b], 0.0),
+            backend.point(np.eye(m)[b]),
+            backend.zeros((m, m)),
+            backend,
+        )
+        for b in range(p)
+    ]
+    gv = planar_perturbation_jets(state[0::2], state[1::2], th, *points)
+    bounds = [jet.h.bounds() for jet in gv]
+    return np.stack([b[0] for b in bounds]), np.stack([b[1] for b in bounds])
+
+
+def _affine_tube_spread(piece_data, radius, rhat, params, traj, k, seg_hi, weights):
+    """The certificate's weighted Hessian spread over the tube by the prototype affine
+    backend (:func:`_affine_hessian_box`): ``sum_j weight_j max|H(z) - H(0)|`` over the
+    boxes ``s_j Z`` for the last joint, an (m, m) array like the sampled one of
+    :func:`tube_row`."""
+    args = [np.asarray(piece_data[key]) for key in ("state", "sens", "sens2", "center")]
+    consts = (np.asarray(traj.u_d[k]), np.asarray(traj.kp), np.asarray(traj.kd))
+    lo, hi = _affine_hessian_box(*args, radius, rhat, 0.0, params, *consts)
+    centre_h = 0.5 * (lo + hi)[-1]
+    spread = 0.0
+    for s_hi, weight in zip(seg_hi, weights, strict=True):
+        lo, hi = _affine_hessian_box(*args, radius, rhat, s_hi, params, *consts)
+        spread = spread + weight * np.maximum(hi[-1] - centre_h, centre_h - lo[-1])
+    return spread
+
+
+def induction_row(
+    n,
+    splits,
+    steps,
+    enclosure,
+    piece=None,
+    duration=1.0,
+    segments=3,
+    feedback=True,
+    propagate="nominal",
+):
+    """``certified``'s induction for one piece of the box, replayed in numpy with the
+    Hessian spread over the tube enclosed by ``enclosure``: ``"interval"`` (the
+    certificate's own 2-jets, to check this replay against it) or ``"affine"`` (the
+    prototype backend, :func:`_affine_hessian_box`). A *measurement*: rounding is not
+    bounded and the centre model's enclosure widths are left out, so nothing here is
+    certified. ``preset_arm(n)``, sine on every joint, each mass range in ``splits``;
+    ``piece``: the one whose remainder input is largest at step 1 by default (pieces
+    are certified independently, so one piece shows whether its remainder stays
+    bounded). ``feedback=False`` leaves out every term of the input that involves the
+    remainder ``R`` itself (``gv_R R`` and the Hessian blocks with ``R``), keeping the
+    parameter-parameter block: an ablation, to see whether the divergence is the
+    remainder's own feedback. Returns per step the largest remainder input and its parts
+    (for the joint where it is largest), the largest remainder and its ratio to the
+    first-order range; the replay stops once the remainder exceeds 10.
+
+    ``propagate``: ``"nominal"`` as ``certified`` does (``R_(k+1) = A R_k + dt e2 w_k``
+    with the nominal loop's ``A`` and ``w_k`` including ``|gv_R| |R_k|``, the piece
+    centre's first-order feedback of the remainder, in absolute values), or ``"centre"``:
+    the remainder propagated through the piece centre's own linearised closed loop
+    ``A_c(k) = A + dt e2 gv_R(x_c(k), th_c)`` as a zonotope (the transition matrices
+    applied to every past input's generators, so no absolute values are taken around
+    the loop), ``w_k`` holding only the second-order terms.
+    """
+    params = rmijax.preset_arm(n)
+    traj = rmijax.trajectory(["sine"] * n, duration=duration)
+    p, dt = params.n_params, float(traj.dt)
+    centers, los, his = _pieces(params, _split_counts(params, splits))
+    if piece is None:
+        zeros = jnp.zeros((n, 2))
+        short = rmijax.trajectory(["sine"] * n, duration=0.03)
+        _, _, _, pieces, _, _ = _certify_box(short, params, zeros, zeros, splits)
+        piece = int(np.argmax(np.asarray(pieces["injected"])[:, 1].max(axis=(-2, -1))))
+    center, radius = centers[piece], 0.5 * (his[piece] - los[piece])
+    kernel, _ = _kernel(traj.kp, traj.kd, traj.dt, steps + 1)
+    kernel = np.asarray(kernel)  # (steps, n, 2, 2): |A_i^m|
+    kp, kd = np.asarray(traj.kp), np.asarray(traj.kd)
+    evaluate = jax.jit(_evaluate)
+    seg_hi = (np.arange(segments) + 1.0) / segments
+    seg_lo = np.arange(segments) / segments
+    weights = (seg_hi - seg_lo) - 0.5 * (seg_hi**2 - seg_lo**2)
+    d_box = Interval(jnp.asarray(-radius), jnp.asarray(radius))
+    xc = np.asarray(traj.x_n[0])
+    sens, sens2 = np.zeros((n, 2, p)), np.zeros((n, 2, p, p))
+    rhat, injected, rows = np.zeros((n, 2)), [], []
+    gens = np.zeros((2 * n, 0))  # propagate="centre": the remainder's zonotope
+    for k in range(steps):
+        u = np.asarray(traj.u_d[k])
+        consts = dict(nominal=params.nominal, u=u, kp=traj.kp, kd=traj.kd)
+        g0, g1, g2 = evaluate(
+            Interval(xc), Interval(sens), jnp.asarray(sens2), Interval(center), None, consts
+        )
+        g0, g1, g2 = (np.asarray(g.mid()) for g in (g0, g1, g2))
+        linear = np.abs(g1[:, p:]) * np.reshape(rhat, -1)[None]
+        centre_h = np.zeros((n, p + 2 * n, p + 2 * n))
+        centre_h[:, :p, :p] = g2[:, :p, :p]
+        spread = 0.0
+        for s_hi, weight in zip(seg_hi, weights, strict=True):
+            if enclosure == "interval":
+                box = d_box * float(s_hi)
+                low, high = _poly_range(jnp.asarray(sens), jnp.asarray(sens2), box.lo, box.hi)
+                tube = Interval(xc) + Interval(low, high) + Interval(-rhat, rhat) * float(s_hi)
+                grad = Interval(sens) + (Interval(sens2) * box[None, None, None, :]).sum(-1)
+                _, _, h = evaluate(
+                    tube, grad, jnp.asarray(sens2), Interval(center) + box, None, consts
+                )
+                lo, hi = np.asarray(h.lo), np.asarray(h.hi)
+            else:
+                lo, hi = _affine_hessian_box(
+                    xc, sens, sens2, center, radius, rhat, s_hi, params, u, kp, kd
+                )
+            spread = spread + weight * np.maximum(hi - centre_h, centre_h - lo)
+        v_hat = np.concatenate([radius, np.reshape(rhat, -1)])
+        quadratic = spread * v_hat[None, :, None] * v_hat[None, None, :]
+        w = quadratic.sum(axis=(-2, -1))
+        if propagate == "nominal":
+            w = w + linear.sum(-1)
+        if not feedback:
+            w = quadratic[:, :p, :p].sum(axis=(-2, -1))
+        worst = int(np.argmax(w))  # the joint whose input is largest: its parts
+        parts = dict(
+            linear=float(linear[worst].sum()),
+            param_param=float(quadratic[worst, :p, :p].sum()),
+            param_state=float(2 * quadratic[worst, :p, p:].sum()),
+            state_state=float(quadratic[worst, p:, p:].sum()),
+        )
+        # the next Taylor model (midpoints) and the remainder bound
+        q, qd = xc[:, 0], xc[:, 1]
+        xc = np.stack([q + dt * qd, qd + dt * (u - kd * qd - kp * q + g0)], axis=1)
+        sq, sqd = sens[:, 0], sens[:, 1]
+        new_sqd = sqd + dt * (-kd[:, None] * sqd - kp[:, None] * sq + g1[:, :p])
+        sens = np.stack([sq + dt * sqd, new_sqd], axis=1)
+        qq, qqd = sens2[:, 0], sens2[:, 1]
+        gain_d, gain_p = kd[:, None, None], kp[:, None, None]
+        new_qqd = qqd + dt * (-gain_d * qqd - gain_p * qq + g2[:, :p, :p])
+        sens2 = np.stack([qq + dt * qqd, new_qqd], axis=1)
+        sens2 = 0.5 * (sens2 + np.swapaxes(sens2, -1, -2))
+        if propagate == "nominal":
+            injected.insert(0, np.stack([np.zeros(n), dt * w], axis=1))
+            rhat = np.einsum("kiab,kib->ia", kernel[: len(injected)], np.stack(injected))
+        else:  # zonotope generators (2n, columns), state order (joint, q/qd)
+            a_c = np.zeros((2 * n, 2 * n))
+            for i in range(n):
+                a_c[2 * i : 2 * i + 2, 2 * i : 2 * i + 2] = [
+                    [1.0, dt],
+                    [-kp[i] * dt, 1.0 - kd[i] * dt],
+                ]
+                a_c[2 * i + 1] += dt * g1[i, p:]
+            new_gens = np.zeros((2 * n, n))
+            new_gens[1::2] = np.diag(dt * w)
+            gens = np.concatenate([a_c @ gens, new_gens], axis=1)
+            rhat = np.sum(np.abs(gens), axis=1).reshape(n, 2)
+        first = np.sum(np.abs(sens) * radius, axis=-1)  # (n, 2) first-order range
+        rows.append(
+            dict(
+                step=k + 1,
+                w_max=float(w.max()),
+                remainder_max=float(rhat.max()),
+                remainder_over_first=float(np.max(rhat / np.maximum(first, 1e-300))),
+                w_parts=parts,
+            )
+        )
+        if not np.all(np.isfinite(rhat)) or rhat.max() > 10.0:
+            break
+    return dict(
+        links=n,
+        splits=splits,
+        piece=piece,
+        enclosure=enclosure,
+        segments=segments,
+        feedback=feedback,
+        propagate=propagate,
+        steps=rows,
+    )
+
+
+def _certificate_remainder(row, steps):
+    """The largest relative difference between an interval replay's remainder and the
+    certificate's own, for the same piece over the same steps (1 s sine)."""
+    n = row["links"]
+    params = rmijax.preset_arm(n)
+    traj = rmijax.trajectory(["sine"] * n, duration=1.0)
+    zeros = jnp.zeros((n, 2))
+    _, _, _, pieces, _, _ = _certify_box(traj, params, zeros, zeros, row["splits"])
+    own = np.asarray(pieces["remainder"])[row["piece"]]
+    replay = np.array([r["remainder_max"] for r in row["steps"]])
+    reference = np.array([own[k].max() for k in range(1, len(replay) + 1)])
+    return dict(steps=steps, max_rel_difference=float(np.max(np.abs(replay / reference - 1))))
 
 
 TUBE_VARIANTS = {
@@ -678,6 +916,12 @@ def main(argv=None):
         help="only the remainder input's quadratic part against the sampled Hessian over "
         "the same tube (tube_row), minutes",
     )
+    parser.add_argument(
+        "--induction",
+        action="store_true",
+        help="only certified's induction replayed for one piece with the affine enclosure "
+        "(induction_row), minutes",
+    )
     parser.add_argument("--json", default=None, help="write results here")
     args = parser.parse_args(argv)
     meta = run_meta("benchmarks/certified_enclosure.py", argv, dtype="float64")
@@ -696,7 +940,7 @@ def main(argv=None):
         rows = [tube_row(2, 4, (0, 1, 2, 3, 9)), tube_row(4, 2, (0, 1, 2, 3))]
         for row in rows:
             print(f"preset_arm({row['links']}), splits {row['splits']}: quadratic part of w_k")
-            print("step  r_k max   interval   sampled  interval/sampled per block")
+            print("step  r_k max   interval   affine   sampled  interval/sampled per block")
             for r in row["steps"]:
                 ratios = "  ".join(
                     f"{b} {r['interval'][b] / r['sampled'][b]:.0f}"
@@ -705,12 +949,52 @@ def main(argv=None):
                 )
                 print(
                     f"{r['step']:>4}  {r['remainder_max']:.3g}  {r['interval_total']:.3g}  "
-                    f"{r['sampled_total']:.3g}  {ratios}"
+                    f"{r['affine_total']:.3g}  {r['sampled_total']:.3g}  {ratios}"
                 )
                 shown = ", ".join(f"{key} {value:.3g}" for key, value in r["attribution"].items())
                 print(f"      parameter block, one segment: {shown}")
         if args.json:
             write_json(args.json, dict(tube=rows), meta)
+        return
+    if args.induction:
+        runs = [
+            dict(n=2, splits=4, steps=30, enclosure="interval"),
+            dict(n=2, splits=4, steps=100, enclosure="affine"),
+            dict(n=2, splits=4, steps=100, enclosure="affine", propagate="centre"),
+            dict(n=4, splits=2, steps=100, enclosure="interval"),
+            dict(n=4, splits=2, steps=100, enclosure="interval", feedback=False),
+            dict(n=4, splits=2, steps=100, enclosure="affine", feedback=False),
+        ]
+        for splits in (2, 3, 4):
+            for propagate in ("nominal", "centre"):
+                runs.append(
+                    dict(n=4, splits=splits, steps=100, enclosure="affine", propagate=propagate)
+                )
+        rows = []
+        for run in runs:
+            row = induction_row(**run)
+            steps = row["steps"]
+            bounded = steps[-1]["remainder_max"] <= 10.0 and len(steps) == run["steps"]
+            row["bounded"] = bool(bounded)
+            if row["enclosure"] == "interval" and row["links"] == 2:
+                row["certificate_remainder"] = _certificate_remainder(row, run["steps"])
+            rows.append(row)
+            parts = steps[min(10, len(steps)) - 1]["w_parts"]
+            print(
+                f"preset_arm({row['links']}) splits {row['splits']} piece {row['piece']} "
+                f"{row['enclosure']} propagate={row['propagate']} feedback={row['feedback']}: "
+                + (
+                    f"bounded over {len(steps)} steps"
+                    if bounded
+                    else f"remainder above 10 at step {steps[-1]['step']}"
+                )
+                + f"; r/first-order max {max(r['remainder_over_first'] for r in steps):.3g}; "
+                f"w at step 1 {steps[0]['w_max']:.3g}; parts at step {min(10, len(steps))}: "
+                + ", ".join(f"{key} {value:.3g}" for key, value in parts.items()),
+                flush=True,
+            )
+        if args.json:
+            write_json(args.json, dict(induction=rows), meta)
         return
     if args.neumann:
         rows = [neumann_row(n) for n in args.links]

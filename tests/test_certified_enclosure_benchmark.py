@@ -59,7 +59,31 @@ def test_sampled_hessian_over_the_tube_stays_inside_the_interval_enclosure():
             sampled, interval = step["sampled"][block], step["interval"][block]
             assert sampled <= interval * (1.0 + 1e-9), (step["step"], block)
         assert step["sampled_total"] > 0.0
+        # the affine prototype (rounding not bounded, so up to rounding) holds them too,
+        # and is the tighter of the two enclosures in total
+        for block in enclosure.BLOCKS[1:]:
+            sampled, affine = step["sampled"][block], step["affine"][block]
+            assert sampled <= affine * (1.0 + 1e-9) + 1e-15, (step["step"], block)
+        assert step["affine_total"] < step["interval_total"]
     first, last = row["steps"][0], row["steps"][-1]
     # at step 0 the state is known: no remainder, so nothing in its blocks
     assert first["remainder_max"] == 0.0 and first["sampled"]["xx"] == 0.0
     assert last["remainder_max"] > 0.0 and last["sampled"]["mx"] > 0.0
+
+
+def test_induction_replay_equals_the_certificate_and_affine_is_smaller():
+    # The numpy replay of certified's induction (the --induction measurement) with the
+    # certificate's own interval enclosure gives the certificate's remainder; only then
+    # does swapping in the affine enclosure say what that enclosure would change.
+    interval = enclosure.induction_row(2, 2, 8, "interval")
+    check = enclosure._certificate_remainder(interval, 8)
+    assert check["max_rel_difference"] < 1e-6
+    steps = interval["steps"]
+    assert len(steps) == 8 and steps[-1]["remainder_max"] > 0.0
+    affine = enclosure.induction_row(2, 2, 8, "affine", piece=interval["piece"])
+    for a, b in zip(affine["steps"], steps, strict=True):
+        assert 0.0 < a["remainder_max"] < b["remainder_max"]
+    # the zonotope propagation takes the linear feedback out of the input
+    centre = enclosure.induction_row(2, 2, 8, "affine", piece=interval["piece"], propagate="centre")
+    assert all(r["remainder_max"] > 0.0 for r in centre["steps"])
+    assert centre["steps"][0]["remainder_max"] == affine["steps"][0]["remainder_max"]
