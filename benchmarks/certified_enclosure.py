@@ -674,6 +674,7 @@ def induction_row(
     segments=3,
     feedback=True,
     propagate="nominal",
+    keep=False,
 ):
     """``certified``'s induction for one piece of the box, replayed in numpy with the
     Hessian spread over the tube enclosed by ``enclosure``: ``"interval"`` (the
@@ -696,7 +697,15 @@ def induction_row(
     the remainder propagated through the piece centre's own linearised closed loop
     ``A_c(k) = A + dt e2 gv_R(x_c(k), th_c)`` as a zonotope (the transition matrices
     applied to every past input's generators, so no absolute values are taken around
-    the loop), ``w_k`` holding only the second-order terms.
+    the loop), ``w_k`` holding only the second-order terms; or ``"carried"``: the same,
+    and the remainder's first-order dependence on the parameters carried too, ``R = R^0
+    + sum_b R^b d_b`` with every ``R^b`` a linear image of the same generators
+    (``R^b_(k+1) = A_c R^b_k + dt e2 H_b R^0_k``, ``H_b`` the centre's ``d_b``-``R``
+    block of the Hessian), so that the parameter-remainder term ``d' H_dR R`` becomes a
+    coefficient; ``w_k`` then holds ``1/2 R' H_RR(centre) R``, the second-order ``d_b
+    d_c H_b R^c`` and the Lagrange spread of every block about the centre. ``keep``:
+    also return the replay's models and bounds per step (for
+    :func:`replay_containment`).
     """
     params = rmijax.preset_arm(n)
     traj = rmijax.trajectory(["sine"] * n, duration=duration)
@@ -720,6 +729,8 @@ def induction_row(
     sens, sens2 = np.zeros((n, 2, p)), np.zeros((n, 2, p, p))
     rhat, injected, rows = np.zeros((n, 2)), [], []
     gens = np.zeros((2 * n, 0))  # propagate="centre": the remainder's zonotope
+    carried = np.zeros((p, 2 * n, 0))  # propagate="carried": R^b's generators
+    kept = []
     for k in range(steps):
         u = np.asarray(traj.u_d[k])
         consts = dict(nominal=params.nominal, u=u, kp=traj.kp, kd=traj.kd)
@@ -730,6 +741,8 @@ def induction_row(
         linear = np.abs(g1[:, p:]) * np.reshape(rhat, -1)[None]
         centre_h = np.zeros((n, p + 2 * n, p + 2 * n))
         centre_h[:, :p, :p] = g2[:, :p, :p]
+        if propagate == "carried":  # every block's centre value is carried explicitly
+            centre_h = np.array(g2)
         spread = 0.0
         for s_hi, weight in zip(seg_hi, weights, strict=True):
             if enclosure == "interval":
@@ -751,6 +764,14 @@ def induction_row(
         w = quadratic.sum(axis=(-2, -1))
         if propagate == "nominal":
             w = w + linear.sum(-1)
+        if propagate == "carried":
+            r_flat = np.reshape(rhat, -1)
+            # 1/2 R' H_RR(centre) R, and d' H_dR(centre) (sum_c R^c d_c): second order in d
+            w = w + 0.5 * np.einsum("iab,a,b->i", np.abs(g2[:, p:, p:]), r_flat, r_flat)
+            mixed = g2[:, :p, p:]  # (n, p, 2n): H_b, the centre's d_b-R block
+            if carried.shape[-1]:
+                through = np.einsum("ibs,csj->ibcj", mixed, carried)  # H_b R^c per generator
+                w = w + np.einsum("ibcj,b,c->i", np.abs(through), radius, radius)
         if not feedback:
             w = quadratic[:, :p, :p].sum(axis=(-2, -1))
         worst = int(np.argmax(w))  # the joint whose input is largest: its parts
@@ -784,9 +805,17 @@ def induction_row(
                 a_c[2 * i + 1] += dt * g1[i, p:]
             new_gens = np.zeros((2 * n, n))
             new_gens[1::2] = np.diag(dt * w)
+            if propagate == "carried":  # R^b += dt e2 H_b R^0, generator by generator
+                pushed = np.zeros_like(carried)
+                pushed[:, 1::2] = dt * np.einsum("ibs,sj->bij", mixed, gens)
+                carried = np.einsum("st,btj->bsj", a_c, carried) + pushed
+                carried = np.concatenate([carried, np.zeros((p, 2 * n, n))], axis=-1)
             gens = np.concatenate([a_c @ gens, new_gens], axis=1)
-            rhat = np.sum(np.abs(gens), axis=1).reshape(n, 2)
+            spread_d = np.einsum("b,bsj->sj", radius, np.abs(carried))
+            rhat = (np.sum(np.abs(gens), axis=1) + spread_d.sum(axis=1)).reshape(n, 2)
         first = np.sum(np.abs(sens) * radius, axis=-1)  # (n, 2) first-order range
+        if keep:
+            kept.append((xc, sens, sens2, rhat))
         rows.append(
             dict(
                 step=k + 1,
@@ -806,8 +835,51 @@ def induction_row(
         segments=segments,
         feedback=feedback,
         propagate=propagate,
+        duration=duration,
         steps=rows,
-    )
+    ) | (dict(kept=kept, center=center, radius=radius) if keep else {})
+
+
+def replay_containment(row, draws=500, seed=0):
+    """Do constant-parameter runs of the replayed piece stay inside its remainder bound?
+
+    ``row``: an :func:`induction_row` made with ``keep=True``. Runs the discretised
+    closed loop (SPEC section 3, from ``x_d(0)``) at every corner of the piece (up to
+    2^12) and ``draws`` uniform points in it, and compares ``|x_k(th) - x_c(k) - S_k d -
+    1/2 Q_k[d, d]|`` with the replay's ``r_k`` at every step. The replay is not a
+    certificate (no rounding), so this checks its algebra, not a proof. Returns the
+    number of (run, step, output) entries outside and the largest ``|R| / r``.
+    """
+    n, steps = row["links"], len(row["kept"])
+    params = rmijax.preset_arm(n)
+    traj = rmijax.trajectory(["sine"] * n, duration=row["duration"])
+    p = params.n_params
+    center, radius = np.asarray(row["center"]), np.asarray(row["radius"])
+    signs = np.array(np.meshgrid(*[[-1.0, 1.0]] * p, indexing="ij")).reshape(p, -1).T
+    rng = np.random.default_rng(seed)
+    ds = np.concatenate([signs[: 2**12], rng.uniform(-1, 1, (draws, p))]) * radius
+    kp, kd, dt, nominal = traj.kp, traj.kd, traj.dt, jnp.asarray(params.nominal)
+
+    def run(d):
+        th = jnp.asarray(center) + d
+
+        def step(x, u):
+            q, qd = x[:, 0], x[:, 1]
+            gv = coupled_perturbation(params.model, th, nominal, q, qd, u, kp, kd)
+            nxt = jnp.stack([q + dt * qd, qd + dt * (u - kd * qd - kp * q + gv)], axis=1)
+            return nxt, nxt
+
+        return jax.lax.scan(step, traj.x_n[0], traj.u_d[:steps])[1]
+
+    xs = np.asarray(jax.jit(jax.vmap(run))(jnp.asarray(ds)))  # (runs, steps, n, 2)
+    outside, largest = 0, 0.0
+    for k, (xc, sens, sens2, rhat) in enumerate(row["kept"]):
+        poly = xc + np.einsum("isb,rb->ris", sens, ds)
+        poly = poly + 0.5 * np.einsum("isab,ra,rb->ris", sens2, ds, ds)
+        error = np.abs(xs[:, k] - poly)
+        outside += int(np.sum(error > rhat + 1e-12))
+        largest = max(largest, float(np.max(error / np.maximum(rhat, 1e-300))))
+    return dict(runs=int(ds.shape[0]), steps=steps, outside=outside, largest_ratio=largest)
 
 
 def _certificate_remainder(row, steps):
@@ -966,13 +1038,21 @@ def main(argv=None):
             dict(n=4, splits=2, steps=100, enclosure="affine", feedback=False),
         ]
         for splits in (2, 3, 4):
-            for propagate in ("nominal", "centre"):
+            for propagate in ("nominal", "centre", "carried"):
                 runs.append(
                     dict(n=4, splits=splits, steps=100, enclosure="affine", propagate=propagate)
                 )
+        long = dict(steps=300, duration=3.0, enclosure="affine", propagate="carried", keep=True)
+        runs += [dict(n=2, splits=4, **long), dict(n=4, splits=3, **long)]
+        runs += [dict(n=4, splits=4, **long)]
         rows = []
         for run in runs:
             row = induction_row(**run)
+            if run.get("keep"):
+                row["containment"] = replay_containment(row)
+                print(f"  sampled runs against the replay's bound: {row['containment']}")
+                row.pop("kept")
+                row["center"], row["radius"] = row["center"].tolist(), row["radius"].tolist()
             steps = row["steps"]
             bounded = steps[-1]["remainder_max"] <= 10.0 and len(steps) == run["steps"]
             row["bounded"] = bool(bounded)
