@@ -684,8 +684,10 @@ def induction_row(
     certified. ``preset_arm(n)``, sine on every joint, each mass range in ``splits``;
     ``piece``: the one whose remainder input is largest at step 1 by default (pieces
     are certified independently, so one piece shows whether its remainder stays
-    bounded). ``feedback=False`` leaves out every term of the input that involves the
-    remainder ``R`` itself (``gv_R R`` and the Hessian blocks with ``R``), keeping the
+    bounded); ``remainder_over_box_first`` sets the remainder against the first-order
+    range the piece's sensitivities give over the whole box, about how much it would
+    widen the union of the pieces' bands. ``feedback=False`` leaves out every term of
+    the input that involves the remainder ``R`` itself (``gv_R R`` and the Hessian blocks with ``R``), keeping the
     parameter-parameter block: an ablation, to see whether the divergence is the
     remainder's own feedback. Returns per step the largest remainder input and its parts
     (for the joint where it is largest), the largest remainder and its ratio to the
@@ -717,6 +719,7 @@ def induction_row(
         _, _, _, pieces, _, _ = _certify_box(short, params, zeros, zeros, splits)
         piece = int(np.argmax(np.asarray(pieces["injected"])[:, 1].max(axis=(-2, -1))))
     center, radius = centers[piece], 0.5 * (his[piece] - los[piece])
+    box_radius = 0.5 * (np.asarray(params.hi) - np.asarray(params.lo))
     kernel, _ = _kernel(traj.kp, traj.kd, traj.dt, steps + 1)
     kernel = np.asarray(kernel)  # (steps, n, 2, 2): |A_i^m|
     kp, kd = np.asarray(traj.kp), np.asarray(traj.kd)
@@ -814,6 +817,7 @@ def induction_row(
             spread_d = np.einsum("b,bsj->sj", radius, np.abs(carried))
             rhat = (np.sum(np.abs(gens), axis=1) + spread_d.sum(axis=1)).reshape(n, 2)
         first = np.sum(np.abs(sens) * radius, axis=-1)  # (n, 2) first-order range
+        box_first = np.sum(np.abs(sens) * box_radius, axis=-1)  # same over the whole box
         if keep:
             kept.append((xc, sens, sens2, rhat))
         rows.append(
@@ -822,6 +826,7 @@ def induction_row(
                 w_max=float(w.max()),
                 remainder_max=float(rhat.max()),
                 remainder_over_first=float(np.max(rhat / np.maximum(first, 1e-300))),
+                remainder_over_box_first=float(np.max(rhat / np.maximum(box_first, 1e-300))),
                 w_parts=parts,
             )
         )
