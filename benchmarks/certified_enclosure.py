@@ -687,11 +687,12 @@ def induction_row(
     bounded); ``remainder_over_box_first`` sets the remainder against the first-order
     range the piece's sensitivities give over the whole box, about how much it would
     widen the union of the pieces' bands. ``feedback=False`` leaves out every term of
-    the input that involves the remainder ``R`` itself (``gv_R R`` and the Hessian blocks with ``R``), keeping the
-    parameter-parameter block: an ablation, to see whether the divergence is the
-    remainder's own feedback. Returns per step the largest remainder input and its parts
-    (for the joint where it is largest), the largest remainder and its ratio to the
-    first-order range; the replay stops once the remainder exceeds 10.
+    the input that involves the remainder ``R`` itself (``gv_R R`` and the Hessian
+    blocks with ``R``), keeping the parameter-parameter block: an ablation, to see
+    whether the divergence is the remainder's own feedback. Returns per step the largest
+    remainder input and its parts (for the joint where it is largest), the largest
+    remainder and its ratio to the first-order range; the replay stops once the
+    remainder exceeds 10.
 
     ``propagate``: ``"nominal"`` as ``certified`` does (``R_(k+1) = A R_k + dt e2 w_k``
     with the nominal loop's ``A`` and ``w_k`` including ``|gv_R| |R_k|``, the piece
