@@ -57,6 +57,12 @@ bounded?
 
     python benchmarks/certified_enclosure.py --induction \\
         --json benchmarks/results/certified_induction_cpu.json
+
+With ``--union`` (about 15 minutes) every piece is replayed that way and the union of
+their bands set against sampled constant-parameter runs (``union_row``):
+
+    python benchmarks/certified_enclosure.py --union \\
+        --json benchmarks/results/certified_union_cpu.json
 """
 
 from __future__ import annotations
@@ -888,6 +894,76 @@ def replay_containment(row, draws=500, seed=0):
     return dict(runs=int(ds.shape[0]), steps=steps, outside=outside, largest_ratio=largest)
 
 
+def union_row(n, splits, steps, draws=1000, seed=0):
+    """The band the 'carried' affine replay would give: every piece of the box replayed
+    (:func:`induction_row`), each piece's ``x_c + range(S d + 1/2 Q[d, d]) +- r_k`` and
+    their union, against the range of constant-parameter runs of the closed loop over the
+    whole box (every corner up to 2^12 and ``draws`` uniform points). Not a certificate
+    (no rounding); it says how tight such a certificate could be. ``preset_arm(n)``,
+    sine on every joint, the first ``steps`` steps.
+    """
+    params = rmijax.preset_arm(n)
+    duration = steps / 100 + 0.01
+    traj = rmijax.trajectory(["sine"] * n, duration=duration)
+    centers, _, _ = _pieces(params, _split_counts(params, splits))
+    lower = np.full((steps, n, 2), np.inf)
+    upper = np.full((steps, n, 2), -np.inf)
+    diverged = []
+    for piece in range(centers.shape[0]):
+        row = induction_row(
+            n,
+            splits,
+            steps,
+            "affine",
+            piece=piece,
+            duration=duration,
+            propagate="carried",
+            keep=True,
+        )
+        if len(row["kept"]) < steps:
+            diverged.append(piece)
+            continue
+        radius = row["radius"]
+        for k, (xc, sens, sens2, rhat) in enumerate(row["kept"]):
+            low, high = _poly_range(jnp.asarray(sens), jnp.asarray(sens2), -radius, radius)
+            lower[k] = np.minimum(lower[k], xc + np.asarray(low) - rhat)
+            upper[k] = np.maximum(upper[k], xc + np.asarray(high) + rhat)
+    p = params.n_params
+    lo, hi = np.asarray(params.lo), np.asarray(params.hi)
+    signs = np.array(np.meshgrid(*[[0.0, 1.0]] * p, indexing="ij")).reshape(p, -1).T
+    rng = np.random.default_rng(seed)
+    ths = lo + np.concatenate([signs[: 2**12], rng.uniform(0, 1, (draws, p))]) * (hi - lo)
+    kp, kd, dt, nominal = traj.kp, traj.kd, traj.dt, jnp.asarray(params.nominal)
+
+    def run(th):
+        def step(x, u):
+            q, qd = x[:, 0], x[:, 1]
+            gv = coupled_perturbation(params.model, th, nominal, q, qd, u, kp, kd)
+            nxt = jnp.stack([q + dt * qd, qd + dt * (u - kd * qd - kp * q + gv)], axis=1)
+            return nxt, nxt
+
+        return jax.lax.scan(step, traj.x_n[0], traj.u_d[:steps])[1]
+
+    xs = np.asarray(jax.jit(jax.vmap(run))(jnp.asarray(ths)))  # (runs, steps, n, 2)
+    seen_lo, seen_hi = xs.min(axis=0), xs.max(axis=0)
+    outside = int(np.sum((xs < lower - 1e-12) | (xs > upper + 1e-12))) if not diverged else -1
+    seen = seen_hi - seen_lo  # outputs the parameters do not move yet (step 1's q) skipped
+    ratio = np.where(seen > 1e-12, (upper - lower) / np.maximum(seen, 1e-300), np.nan)
+    late = ratio[50:] if steps > 50 else ratio
+    return dict(
+        links=n,
+        splits=splits,
+        pieces=int(centers.shape[0]),
+        steps=steps,
+        diverged_pieces=diverged,
+        runs=int(ths.shape[0]),
+        runs_outside=outside,
+        width_over_seen_median=[float(np.nanmedian(late[..., s])) for s in range(2)],
+        width_over_seen_p90=[float(np.nanpercentile(late[..., s], 90)) for s in range(2)],
+        width_over_seen_min=[float(np.nanmin(late[..., s])) for s in range(2)],
+    )
+
+
 def _certificate_remainder(row, steps):
     """The largest relative difference between an interval replay's remainder and the
     certificate's own, for the same piece over the same steps (1 s sine)."""
@@ -1000,6 +1076,12 @@ def main(argv=None):
         help="only certified's induction replayed for one piece with the affine enclosure "
         "(induction_row), minutes",
     )
+    parser.add_argument(
+        "--union",
+        action="store_true",
+        help="only the band every piece's 'carried' affine replay would give, against "
+        "sampled runs (union_row), about 15 minutes",
+    )
     parser.add_argument("--json", default=None, help="write results here")
     args = parser.parse_args(argv)
     meta = run_meta("benchmarks/certified_enclosure.py", argv, dtype="float64")
@@ -1033,6 +1115,21 @@ def main(argv=None):
                 print(f"      parameter block, one segment: {shown}")
         if args.json:
             write_json(args.json, dict(tube=rows), meta)
+        return
+    if args.union:
+        rows = [union_row(2, 4, 100), union_row(4, 3, 100)]
+        for row in rows:
+            print(
+                f"preset_arm({row['links']}), {row['pieces']} pieces, {row['steps']} steps: "
+                f"diverged pieces {row['diverged_pieces']}, runs outside "
+                f"{row['runs_outside']} of {row['runs']}; width / sampled range after 0.5 s, "
+                f"encoder and tachometer: median {np.round(row['width_over_seen_median'], 3)}"
+                f", p90 {np.round(row['width_over_seen_p90'], 3)}, min "
+                f"{np.round(row['width_over_seen_min'], 3)}",
+                flush=True,
+            )
+        if args.json:
+            write_json(args.json, dict(union=rows), meta)
         return
     if args.induction:
         runs = [

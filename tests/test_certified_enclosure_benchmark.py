@@ -103,3 +103,16 @@ def test_carried_replay_bounds_every_sampled_run_of_its_piece():
     # and it is below what the certificate's own propagation gives for the same piece
     nominal = enclosure.induction_row(2, 2, 20, "affine", piece=row["piece"])
     assert row["steps"][-1]["remainder_max"] < nominal["steps"][-1]["remainder_max"]
+
+
+def test_union_of_carried_replays_holds_every_sampled_run():
+    # The --union measurement: every piece's carried replay, united, against
+    # constant-parameter runs over the whole box (corners and draws).
+    row = enclosure.union_row(2, 2, 30, draws=100)
+    assert row["pieces"] == 4 and row["diverged_pieces"] == []
+    assert row["runs"] == 2**4 + 100 and row["runs_outside"] == 0
+    # a band holding the runs is at least their range; close to it at two links
+    for ratio in row["width_over_seen_min"]:
+        assert ratio >= 1.0 - 1e-9
+    for ratio in row["width_over_seen_median"]:
+        assert ratio < 1.2
