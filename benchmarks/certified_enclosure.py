@@ -852,6 +852,23 @@ def induction_row(
     ) | (dict(kept=kept, center=center, radius=radius) if keep else {})
 
 
+def _closed_loop_runs(params, traj, ths, steps):
+    """States of the discretised closed loop (SPEC section 3, from ``x_d(0)``) for each
+    constant parameter vector in ``ths`` (runs, p): (runs, steps, n, 2), steps 1..steps."""
+    kp, kd, dt, nominal = traj.kp, traj.kd, traj.dt, jnp.asarray(params.nominal)
+
+    def run(th):
+        def step(x, u):
+            q, qd = x[:, 0], x[:, 1]
+            gv = coupled_perturbation(params.model, th, nominal, q, qd, u, kp, kd)
+            nxt = jnp.stack([q + dt * qd, qd + dt * (u - kd * qd - kp * q + gv)], axis=1)
+            return nxt, nxt
+
+        return jax.lax.scan(step, traj.x_n[0], traj.u_d[:steps])[1]
+
+    return np.asarray(jax.jit(jax.vmap(run))(jnp.asarray(ths)))
+
+
 def replay_containment(row, draws=500, seed=0):
     """Do constant-parameter runs of the replayed piece stay inside its remainder bound?
 
@@ -870,20 +887,7 @@ def replay_containment(row, draws=500, seed=0):
     signs = np.array(np.meshgrid(*[[-1.0, 1.0]] * p, indexing="ij")).reshape(p, -1).T
     rng = np.random.default_rng(seed)
     ds = np.concatenate([signs[: 2**12], rng.uniform(-1, 1, (draws, p))]) * radius
-    kp, kd, dt, nominal = traj.kp, traj.kd, traj.dt, jnp.asarray(params.nominal)
-
-    def run(d):
-        th = jnp.asarray(center) + d
-
-        def step(x, u):
-            q, qd = x[:, 0], x[:, 1]
-            gv = coupled_perturbation(params.model, th, nominal, q, qd, u, kp, kd)
-            nxt = jnp.stack([q + dt * qd, qd + dt * (u - kd * qd - kp * q + gv)], axis=1)
-            return nxt, nxt
-
-        return jax.lax.scan(step, traj.x_n[0], traj.u_d[:steps])[1]
-
-    xs = np.asarray(jax.jit(jax.vmap(run))(jnp.asarray(ds)))  # (runs, steps, n, 2)
+    xs = _closed_loop_runs(params, traj, center + ds, steps)  # (runs, steps, n, 2)
     outside, largest = 0, 0.0
     for k, (xc, sens, sens2, rhat) in enumerate(row["kept"]):
         poly = xc + np.einsum("isb,rb->ris", sens, ds)
@@ -933,18 +937,7 @@ def union_row(n, splits, steps, draws=1000, seed=0):
     signs = np.array(np.meshgrid(*[[0.0, 1.0]] * p, indexing="ij")).reshape(p, -1).T
     rng = np.random.default_rng(seed)
     ths = lo + np.concatenate([signs[: 2**12], rng.uniform(0, 1, (draws, p))]) * (hi - lo)
-    kp, kd, dt, nominal = traj.kp, traj.kd, traj.dt, jnp.asarray(params.nominal)
-
-    def run(th):
-        def step(x, u):
-            q, qd = x[:, 0], x[:, 1]
-            gv = coupled_perturbation(params.model, th, nominal, q, qd, u, kp, kd)
-            nxt = jnp.stack([q + dt * qd, qd + dt * (u - kd * qd - kp * q + gv)], axis=1)
-            return nxt, nxt
-
-        return jax.lax.scan(step, traj.x_n[0], traj.u_d[:steps])[1]
-
-    xs = np.asarray(jax.jit(jax.vmap(run))(jnp.asarray(ths)))  # (runs, steps, n, 2)
+    xs = _closed_loop_runs(params, traj, ths, steps)  # (runs, steps, n, 2)
     seen_lo, seen_hi = xs.min(axis=0), xs.max(axis=0)
     outside = int(np.sum((xs < lower - 1e-12) | (xs > upper + 1e-12))) if not diverged else -1
     seen = seen_hi - seen_lo  # outputs the parameters do not move yet (step 1's q) skipped
