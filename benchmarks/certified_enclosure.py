@@ -1075,6 +1075,9 @@ def main(argv=None):
         help="only the band every piece's 'carried' affine replay would give, against "
         "sampled runs (union_row), about 15 minutes",
     )
+    parser.add_argument(
+        "--union-steps", type=int, default=100, help="--union: steps replayed (100 = 1 s)"
+    )
     parser.add_argument("--json", default=None, help="write results here")
     args = parser.parse_args(argv)
     meta = run_meta("benchmarks/certified_enclosure.py", argv, dtype="float64")
@@ -1110,7 +1113,7 @@ def main(argv=None):
             write_json(args.json, dict(tube=rows), meta)
         return
     if args.union:
-        rows = [union_row(2, 4, 100), union_row(4, 3, 100)]
+        rows = [union_row(2, 4, args.union_steps), union_row(4, 3, args.union_steps)]
         for row in rows:
             print(
                 f"preset_arm({row['links']}), {row['pieces']} pieces, {row['steps']} steps: "
