@@ -518,6 +518,14 @@ def blocks_row(n, splits, duration, kernel_steps=400, segments=3):
     return dict(links=n, splits=splits, duration=duration, steps=rows)
 
 
+def _segments(segments):
+    """``certified``'s radial segments ``[j/J, (j+1)/J]`` of the Lagrange remainder: their
+    upper ends and weights ``int (1 - s) ds`` (floats, not rounded up: measurements)."""
+    seg_hi = (np.arange(segments) + 1.0) / segments
+    seg_lo = np.arange(segments) / segments
+    return seg_hi, (seg_hi - seg_lo) - 0.5 * (seg_hi**2 - seg_lo**2)
+
+
 def tube_row(n, splits, steps, duration=0.3, samples=1500, seed=0, segments=3):
     """How much of ``certified``'s remainder input the true Hessian needs, step by step.
 
@@ -544,9 +552,7 @@ def tube_row(n, splits, steps, duration=0.3, samples=1500, seed=0, segments=3):
     kp, kd = traj.kp, traj.kd
     p = params.n_params
     m = p + 2 * n
-    seg_hi = (np.arange(segments) + 1.0) / segments
-    seg_lo = np.arange(segments) / segments
-    weights = (seg_hi - seg_lo) - 0.5 * (seg_hi**2 - seg_lo**2)  # int (1 - s) ds
+    seg_hi, weights = _segments(segments)
     edges = (0, n, p, m)
     spans = list(zip(edges[:-1], edges[1:], strict=True))
 
@@ -731,9 +737,7 @@ def induction_row(
     kernel = np.asarray(kernel)  # (steps, n, 2, 2): |A_i^m|
     kp, kd = np.asarray(traj.kp), np.asarray(traj.kd)
     evaluate = jax.jit(_evaluate)
-    seg_hi = (np.arange(segments) + 1.0) / segments
-    seg_lo = np.arange(segments) / segments
-    weights = (seg_hi - seg_lo) - 0.5 * (seg_hi**2 - seg_lo**2)
+    seg_hi, weights = _segments(segments)
     d_box = Interval(jnp.asarray(-radius), jnp.asarray(radius))
     xc = np.asarray(traj.x_n[0])
     sens, sens2 = np.zeros((n, 2, p)), np.zeros((n, 2, p, p))

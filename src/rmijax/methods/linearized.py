@@ -44,6 +44,7 @@ import numpy as np
 from rmijax import _checks
 from rmijax.control import closed_loop_step, coupled_perturbation
 from rmijax.methods import rmi as engine
+from rmijax.methods._keys import tie_tolerance
 from rmijax.methods.base import Bounds
 from rmijax.robots.box import UncertainRobot
 from rmijax.trajectory import Trajectory
@@ -148,8 +149,7 @@ def margin_corners(up_term, down_term, lo, hi):
         of the solve's rounding.
     """
     gap = up_term - down_term
-    scale = jnp.sum(jnp.abs(gap), axis=-1, keepdims=True)
-    tol = jnp.finfo(gap.dtype).eps ** (2.0 / 3.0) * scale
+    tol = tie_tolerance(jnp.sum(jnp.abs(gap), axis=-1, keepdims=True), 0.0)
     hi_b, lo_b = jnp.broadcast_to(hi, gap.shape), jnp.broadcast_to(lo, gap.shape)
     return jnp.stack([jnp.where(gap > tol, hi_b, lo_b), jnp.where(gap < -tol, hi_b, lo_b)])
 
