@@ -207,6 +207,12 @@ def check_certificate(cert, traj, params, *, steps: int | None = None, pieces=No
     Returns:
         :class:`CheckResult`; ``ok`` is False with the first failed check in ``reason``.
     """
+    if (cert.enclosure, cert.propagate) != ("interval", "kernel"):
+        raise NotImplementedError(
+            "check_certificate re-verifies certificates made with enclosure='interval' and "
+            f"propagate='kernel' only, got {cert.enclosure!r} and {cert.propagate!r}: the "
+            "affine enclosure and the carried generators have no independent checker yet"
+        )
     iv = _iv()
     backend = _MpBackend(iv)
     n, p = traj.n_joints, params.n_params

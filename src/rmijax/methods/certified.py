@@ -55,6 +55,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from rmijax import _checks
+from rmijax._affine import AffineForm, run_affine_tape
 from rmijax._intervals import Interval, Tape, run_tape, up
 from rmijax.methods.base import Bounds, DivergedError, check_types
 from rmijax.robots.box import UncertainRobot
@@ -75,6 +76,7 @@ KERNEL_STEPS = 400
 
 _EPS = 2.0**-52
 _TINY = 2.0**-1000
+_AFFINE_BATCH = 16  # pieces evaluated together on affine jets (memory: ~15 MB each at 4 links)
 
 
 # --------------------------------------------------------------------------
@@ -275,6 +277,11 @@ class Certificate:
         lower, upper: (T+1, n, 2) the band (noise included).
         noise_lo, noise_hi: (n, 2) sensor noise bounds.
         segments: radial segments of the Lagrange remainder (static).
+        enclosure: ``"interval"`` or ``"affine"``: how the Hessian over the tube was
+            enclosed (static).
+        propagate: ``"kernel"`` (``remainder`` from ``injected`` through ``kernel``
+            and ``tail``) or ``"carried"`` (through the pieces' own loops, generators
+            not stored: :func:`check_certificate` re-verifies ``"kernel"`` only) (static).
     """
 
     center: jax.Array
@@ -292,6 +299,8 @@ class Certificate:
     noise_lo: jax.Array
     noise_hi: jax.Array
     segments: int = dataclasses.field(default=3, metadata=dict(static=True))
+    enclosure: str = dataclasses.field(default="interval", metadata=dict(static=True))
+    propagate: str = dataclasses.field(default="kernel", metadata=dict(static=True))
 
     @property
     def n_pieces(self) -> int:
@@ -458,6 +467,73 @@ def _evaluate(state, state_grad_d, sens2, th_value, noise_value, consts, remaind
     return run_tape(tape, leaves, np.asarray(rows))
 
 
+def _evaluate_affine(xc, sens, sens2, center, d_rad, rhat, eta_hat, scale, consts):
+    """The Hessian of ``gv`` in ``z = (d, R[, eta])`` over the box ``scale Z``, enclosed
+    by affine arithmetic with rounding bounded (:mod:`rmijax._affine`).
+
+    The parameters are the symbols, ``d_b = scale d_rad_b eps_b``; the remainder ``R``
+    and the noise ``eta`` (small) enter the error terms. The state enters as ``x = x_c +
+    S d`` exactly in the symbols (``1/2 Q[d, d]`` and ``R`` bounded into its error term)
+    and its ``d``-gradient as ``S + Q d``, so the dependence of the state on the
+    parameters, which interval arithmetic forgets, is kept.
+
+    Args:
+        xc: (n, 2) centre state; sens: (n, 2, p); sens2: (n, 2, p, p) (symmetric).
+        center: (p,) ``th_c``; d_rad: (p,) the piece's half-widths (upper bounds);
+        rhat: (n, 2) remainder bound; eta_hat: (n, 2) noise bound, or None.
+        scale: the segment's end ``s``; consts: as :func:`_evaluate`.
+
+    Returns:
+        ``(lo, hi)`` (n, m, m): bounds of every Hessian entry over the box.
+    """
+    n, p = xc.shape[0], center.shape[0]
+    noisy = eta_hat is not None
+    m = p + 2 * n + (2 * n if noisy else 0)
+    k = p  # symbols: the parameters only; R and eta (tiny) enter as error terms
+    dtype = xc.dtype
+    rad = d_rad * scale * (1.0 + 4 * _EPS)  # a symbol may cover a little more than d_b
+    eye = jnp.eye(m, dtype=dtype)
+    swap = lambda x: jnp.swapaxes(x, 0, 1).reshape((2 * n,) + x.shape[2:])  # noqa: E731
+
+    def exact(c, a, e):  # the rounding of c and a is added to e
+        slack = (jnp.abs(c) + jnp.sum(jnp.abs(a), axis=-1)) * 2.0**-50
+        return AffineForm(c, a, (e + slack) * (1.0 + 16 * _EPS) + _TINY)
+
+    # state values: x_c + S d (+ the quadratic and R in the error term)
+    quad = 0.5 * jnp.sum(jnp.abs(sens2) * (rad[:, None] * rad[None, :])[None, None], axis=(-2, -1))
+    quad = (quad * (1.0 + (p * p + 8) * _EPS) + rhat * scale) * (1.0 + 4 * _EPS)
+    x_form = exact(swap(xc), swap(sens) * rad[None], swap(quad))
+    # the gradient: S + Q d in d, unit vectors in R
+    coef = jnp.zeros((n, 2, m), dtype).at[..., :p].set(sens)
+    coef = coef + eye[p : p + 2 * n].reshape(n, 2, m)
+    g_a = jnp.zeros((n, 2, m, k), dtype).at[..., :p, :].set(sens2 * rad[None, None, None, :])
+    g_form = exact(swap(coef), swap(g_a), jnp.zeros((2 * n, m), dtype))
+    h_x = jnp.zeros((n, 2, m, m), dtype).at[..., :p, :p].set(sens2)
+    th_form = exact(center, jnp.diag(rad), jnp.zeros((p,), dtype))
+    values, grads, hess = [x_form, th_form], [g_form], [swap(h_x)]
+    grads.append(AffineForm.point(eye[:p], k))
+    hess.append(jnp.zeros((p, m, m), dtype))
+    if noisy:
+        eta_c = jnp.zeros((2 * n,), dtype)
+        eta_e = swap(eta_hat) * scale * (1.0 + 4 * _EPS)
+        values.append(AffineForm(eta_c, jnp.zeros((2 * n, k), dtype), eta_e))
+        grads.append(AffineForm.point(swap(eye[p + 2 * n :].reshape(n, 2, m)), k))
+        hess.append(jnp.zeros((2 * n, m, m), dtype))
+    constants = jnp.concatenate([consts["nominal"], consts["u"], consts["kp"], consts["kd"]])
+    values.append(AffineForm.point(constants, k))
+    grads.append(AffineForm.point(jnp.zeros((constants.shape[0], m), dtype), k))
+    hess.append(jnp.zeros((constants.shape[0], m, m), dtype))
+
+    def cat(forms):
+        parts = [jnp.concatenate([getattr(f, key) for f in forms], 0) for key in "cae"]
+        return AffineForm(*parts)
+
+    leaves = (cat(values), cat(grads), cat([AffineForm.point(h, k) for h in hess]))
+    tape, rows = _perturbation_tape(n, noisy)
+    _, _, h = run_affine_tape(tape, leaves, np.asarray(rows))
+    return h.bounds()
+
+
 def _certify_piece(
     center,
     lo,
@@ -472,6 +548,8 @@ def _certify_piece(
     scale,
     segments,
     diagnostics=False,
+    enclosure="interval",
+    propagate="kernel",
 ):
     """The Taylor-model induction over the whole run for one piece of the box.
 
@@ -499,9 +577,12 @@ def _certify_piece(
     seg_weight = up(jnp.asarray((seg_hi - seg_lo) - 0.5 * (seg_hi**2 - seg_lo**2), dtype))
     seg_hi = jnp.asarray(seg_hi, dtype)
     m = p + 2 * n + (2 * n if noisy else 0)
+    carried = propagate == "carried"
+    n_steps = traj.u_d.shape[0] - 1
+    columns = 2 * n * n_steps if carried else 1  # the remainder's generators
 
     def step(carry, u):
-        xc, sens, sens2, buf, tail_max, rhat = carry
+        xc, sens, sens2, buf, tail_max, rhat, gens, gens_d, k = carry
         consts = dict(nominal=nominal, u=u, kp=kp, kd=kd)
         # --- the centre: coefficients of the next Taylor model ---------------
         zero_noise = Interval(jnp.zeros((n, 2), dtype)) if noisy else None
@@ -530,10 +611,13 @@ def _certify_piece(
             + 0.5 * _sum_up(eps[2] * d_outer[None, None], (-2, -1), p * p)
         ) * (1.0 + 8 * _EPS)
         # --- the Hessian over the tube, on nested boxes s Z (radial segments) -----
-        centre_h = Interval(
-            jnp.zeros((n, m, m), dtype).at[:, :p, :p].set(g2.lo[:, :p, :p]),
-            jnp.zeros((n, m, m), dtype).at[:, :p, :p].set(g2.hi[:, :p, :p]),
-        )
+        if carried:  # every block's centre value is used: the spread is about it
+            centre_h = g2
+        else:
+            centre_h = Interval(
+                jnp.zeros((n, m, m), dtype).at[:, :p, :p].set(g2.lo[:, :p, :p]),
+                jnp.zeros((n, m, m), dtype).at[:, :p, :p].set(g2.hi[:, :p, :p]),
+            )
 
         def segment_spread(s_hi, weight):
             sd_box = d_box * s_hi  # rounded outward: holds s D for every s <= s_hi
@@ -542,29 +626,57 @@ def _certify_piece(
             grad_d = Interval(sens) + (Interval(sens2) * sd_box[None, None, None, :]).sum(-1)
             th_box = Interval(center) + sd_box
             noise_s = noise_box * s_hi if noisy else None
-            _, _, h_box = _evaluate(tube, grad_d, sens2, th_box, noise_s, consts, None)
+            if enclosure == "affine":
+                h_box = Interval(
+                    *_evaluate_affine(
+                        xc,
+                        sens,
+                        sens2,
+                        center,
+                        d_rad,
+                        rhat,
+                        eta_hat if noisy else None,
+                        s_hi,
+                        consts,
+                    )
+                )
+            else:
+                _, _, h_box = _evaluate(tube, grad_d, sens2, th_box, noise_s, consts, None)
             return (h_box - centre_h).mag() * weight
 
         spread = jnp.sum(jax.vmap(segment_spread)(seg_hi, seg_weight), axis=0)
         spread = spread * (1.0 + (segments + 4) * _EPS)
         parts = [d_rad, rhat.reshape(-1)] + ([eta_hat.reshape(-1)] if noisy else [])
         v_hat = jnp.concatenate(parts)
-        linear = g1.mag()[:, p:] * v_hat[None, p:]
         quadratic = spread * v_hat[None, :, None] * v_hat[None, None, :]
-        w = _sum_up(linear, -1, m) + _sum_up(quadratic, (-2, -1), m * m)
+        if carried:
+            linear = g1.mag()[:, p + 2 * n :] * v_hat[None, p + 2 * n :]  # noise only
+            extra, a_c, a_err, mixed = _carried_terms(
+                g1, g2, v_hat, d_rad, gens_d, n, p, kp, kd, dt
+            )
+        else:
+            linear = g1.mag()[:, p:] * v_hat[None, p:]
+            extra = 0.0
+        w = _sum_up(linear, -1, m) + _sum_up(quadratic, (-2, -1), m * m) + extra
         blocks = _w_blocks(linear, quadratic, n, p) if diagnostics else None
         w = w * (1.0 + 4 * _EPS) + _TINY
         injected = rounding.at[:, 1].add(up(dt * w) * scale)
         injected = injected * (1.0 + 4 * _EPS) + _TINY
         # --- the remainder bound of the next step -----------------------------
-        dropped = buf[-1]
-        buf = jnp.concatenate([injected[None], buf[:-1]], axis=0)
-        tail_max = jnp.maximum(tail_max, jnp.max(dropped, axis=-1))
-        rhat_next = (
-            _sum_up(kernel * buf[:, :, None, :], (0, -1), 2 * steps) + up(tail * tail_max)[:, None]
-        )
-        rhat_next = rhat_next * (1.0 + 4 * _EPS) + _TINY
-        carry = (new[0], new[1], new[2], buf, tail_max, rhat_next)
+        if carried:
+            gens, gens_d, rhat_next = _carry_generators(
+                gens, gens_d, a_c, a_err, mixed, injected, rhat, d_rad, k, n, dt
+            )
+        else:
+            dropped = buf[-1]
+            buf = jnp.concatenate([injected[None], buf[:-1]], axis=0)
+            tail_max = jnp.maximum(tail_max, jnp.max(dropped, axis=-1))
+            rhat_next = (
+                _sum_up(kernel * buf[:, :, None, :], (0, -1), 2 * steps)
+                + up(tail * tail_max)[:, None]
+            )
+            rhat_next = rhat_next * (1.0 + 4 * _EPS) + _TINY
+        carry = (new[0], new[1], new[2], buf, tail_max, rhat_next, gens, gens_d, k + 1)
         return carry, (new[0], new[1], new[2], injected, rhat_next, blocks)
 
     x0 = traj.x_n[0]
@@ -575,6 +687,9 @@ def _certify_piece(
         jnp.zeros((steps, n, 2), dtype),
         jnp.zeros((n,), dtype),
         jnp.zeros((n, 2), dtype),
+        jnp.zeros((2 * n, columns), dtype),
+        jnp.zeros((p, 2 * n, columns), dtype),
+        jnp.asarray(0, jnp.int32),
     )
     _, (xs, ss, qs, injected, rhats, blocks) = jax.lax.scan(step, init, traj.u_d[:-1])
     cat = lambda first, rest: jnp.concatenate([first[None], rest], 0)  # noqa: E731
@@ -597,6 +712,87 @@ def _certify_piece(
     return out | (dict(w_blocks=blocks) if diagnostics else {})
 
 
+def _carried_terms(g1, g2, v_hat, d_rad, gens_d, n, p, kp, kd, dt):
+    """What ``propagate="carried"`` needs of one step's centre jets.
+
+    The remainder obeys exactly ``R_(k+1) = A_c R_k + dt e2 (d' H_dR R_k + xi_k)``
+    with ``A_c`` the piece centre's own linearised loop (``A`` plus ``dt e2 gv_R``)
+    and ``H_dR`` the centre's ``d``-``R`` block of the Hessian: both are carried
+    exactly (their float midpoints; the rest of their enclosures goes into
+    ``a_err``). With ``R = R^0 + sum_b d_b R^b``, ``d' H_dR R`` splits into ``sum_b
+    d_b H_b R^0`` (a coefficient of ``d_b``: carried into ``R^b``) and ``sum_(b, c)
+    d_b d_c H_b R^c`` (bounded here). Also bounded here: ``1/2 z' H(centre) z`` over
+    the blocks that are not carried (``R``-``R``, and every block with the noise).
+
+    Returns:
+        ``extra`` (n,): the bounded terms (added to ``w``); ``a_c`` (2n, 2n) floats;
+        ``a_err`` (2n, 2n): ``|A_true - A_c|`` over the centre's enclosure;
+        ``mixed`` (n, p, 2n): the float ``H_b`` rows (joint, d_b, R).
+    """
+    dtype = v_hat.dtype
+    mid = g2.mid()
+    mask = jnp.ones_like(mid).at[:, :p, : p + 2 * n].set(0.0).at[:, : p + 2 * n, :p].set(0.0)
+    centre_abs = 0.5 * _sum_up(
+        jnp.abs(mid) * mask * v_hat[None, :, None] * v_hat[None, None, :],
+        (-2, -1),
+        v_hat.shape[0] ** 2,
+    )
+    mixed = mid[:, :p, p : p + 2 * n]  # (n, p, 2n)
+    through = jnp.einsum("ibs,csj->ibcj", mixed, gens_d)  # H_b R^c, per generator
+    second = jnp.einsum("ibcj,b,c->i", jnp.abs(through), d_rad, d_rad)
+    second = second * (1.0 + (2 * n + p * p + gens_d.shape[-1] + 8) * _EPS) + _TINY
+    # A_c: the PD loop's exact reals plus dt gv_R, enclosed, then their midpoints
+    joints, q_cols = jnp.arange(n), 2 * jnp.arange(n)
+    own_p = Interval(kp) * (-dt)
+    own_d = Interval(jnp.ones_like(kp)) - Interval(kd) * dt
+    grad_r = g1[:, p : p + 2 * n] * dt  # (n, 2n)
+    base_lo = jnp.zeros((n, 2 * n), dtype).at[joints, q_cols].set(own_p.lo)
+    base_hi = jnp.zeros((n, 2 * n), dtype).at[joints, q_cols].set(own_p.hi)
+    base_lo = base_lo.at[joints, q_cols + 1].set(own_d.lo)
+    base_hi = base_hi.at[joints, q_cols + 1].set(own_d.hi)
+    qd_rows = grad_r + Interval(base_lo, base_hi)
+    qd_mid = qd_rows.mid()
+    rows_q = jnp.zeros((n, 2 * n), dtype).at[joints, q_cols].set(1.0)
+    rows_q = rows_q.at[joints, q_cols + 1].set(dt)  # q + dt qd: exact reals
+    a_c = jnp.zeros((2 * n, 2 * n), dtype).at[0::2].set(rows_q).at[1::2].set(qd_mid)
+    a_err = jnp.zeros((2 * n, 2 * n), dtype).at[1::2].set(qd_rows.radius_about(qd_mid))
+    return centre_abs + second, a_c, a_err, mixed
+
+
+def _carry_generators(gens, gens_d, a_c, a_err, mixed, injected, rhat, d_rad, k, n, dt):
+    """One step of the carried remainder ``R = G eps + sum_b d_b G^b eps``.
+
+    ``G <- A_c G``, ``G^b <- A_c G^b + dt e2 H_b G``, then ``2n`` new generators, one
+    per state row, whose size is the step's bounded input: ``injected`` (the Lagrange
+    and bounded terms, the Taylor coefficients' rounding), ``a_err |R_k|`` and the
+    rounding of the two products (``gamma_k |A_c| |G|`` and alike, added as bounds).
+    Returns the new ``(gens, gens_d, rhat)`` with ``|R_(k+1)| <= rhat``.
+    """
+    size = 2 * n
+    gamma = (size + 8) * _EPS
+    abs_rows = jnp.sum(jnp.abs(gens), axis=-1)  # (2n,) sum_j |G_sj|
+    abs_rows_d = jnp.sum(jnp.abs(gens_d), axis=-1)  # (p, 2n)
+    new_gens = a_c @ gens
+    pushed = jnp.einsum("ibs,sj->bij", mixed, gens) * dt  # (p, n, columns)
+    new_gens_d = jnp.einsum("st,btj->bsj", a_c, gens_d)
+    new_gens_d = new_gens_d.at[:, 1::2].add(pushed)
+    err = gamma * (jnp.abs(a_c) @ abs_rows)
+    err_d = gamma * (jnp.einsum("st,bt->bs", jnp.abs(a_c), abs_rows_d))
+    err_d = err_d.at[:, 1::2].add(gamma * dt * jnp.einsum("ibs,s->bi", jnp.abs(mixed), abs_rows))
+    columns = gens.shape[-1]
+    err = err * (1.0 + gamma) + jnp.sum(err_d * d_rad[:, None], axis=0) * (1.0 + gamma)
+    err = err + (a_err @ rhat.reshape(-1)) * (1.0 + gamma)
+    err = err * (1.0 + (columns + 8) * _EPS) + _TINY
+    box = injected.reshape(-1) * (1.0 + 4 * _EPS) + err
+    block = jnp.diag(box)  # (2n, 2n): one generator per state row
+    new_gens = jax.lax.dynamic_update_slice(new_gens, block, (jnp.int32(0), k * size))
+    rows = jnp.sum(jnp.abs(new_gens), axis=-1)
+    rows_d = jnp.sum(jnp.abs(new_gens_d), axis=-1)  # (p, 2n)
+    total = rows + jnp.sum(rows_d * d_rad[:, None], axis=0)
+    rhat_next = total * (1.0 + (columns + gens_d.shape[0] + 8) * _EPS) + _TINY
+    return new_gens, new_gens_d, rhat_next.reshape(n, 2)
+
+
 def _w_blocks(linear, quadratic, n, p):
     """Where ``w_k`` comes from (diagnostics, not part of the certificate): (n, 10).
 
@@ -617,7 +813,18 @@ def _w_blocks(linear, quadratic, n, p):
     )
 
 
-@functools.partial(jax.jit, static_argnames=("noisy", "kernel_steps", "segments", "diagnostics"))
+@functools.partial(
+    jax.jit,
+    static_argnames=(
+        "noisy",
+        "kernel_steps",
+        "segments",
+        "diagnostics",
+        "enclosure",
+        "propagate",
+        "batch",
+    ),
+)
 def _certify(
     traj,
     params,
@@ -632,6 +839,9 @@ def _certify(
     kernel_steps,
     segments,
     diagnostics=False,
+    enclosure="interval",
+    propagate="kernel",
+    batch=None,
 ):
     kernel, tail = _kernel(traj.kp, traj.kd, traj.dt, kernel_steps)
     run = functools.partial(
@@ -646,8 +856,13 @@ def _certify(
         scale=scale,
         segments=segments,
         diagnostics=diagnostics,
+        enclosure=enclosure,
+        propagate=propagate,
     )
-    pieces = jax.vmap(run)(centers, los, his)
+    if batch is None:
+        pieces = jax.vmap(run)(centers, los, his)
+    else:  # pieces in batches: the affine jets' buffers are large
+        pieces = jax.lax.map(lambda a: run(*a), (centers, los, his), batch_size=batch)
     return pieces, kernel, tail
 
 
@@ -705,6 +920,8 @@ def _certify_box(
     segments=3,
     remainder_scale=1.0,
     diagnostics=False,
+    enclosure="interval",
+    propagate="kernel",
 ):
     """Split the box and certify every piece: ``(centers, los, his, pieces, kernel, tail)``.
 
@@ -727,6 +944,9 @@ def _certify_box(
         kernel_steps=kernel_steps,
         segments=segments,
         diagnostics=diagnostics,
+        enclosure=enclosure,
+        propagate=propagate,
+        batch=_AFFINE_BATCH if enclosure == "affine" and len(centers) > _AFFINE_BATCH else None,
     )
     return centers, los, his, pieces, kernel, tail
 
@@ -748,6 +968,8 @@ def certified_bounds(
     kernel_steps: int = KERNEL_STEPS,
     segments: int = 3,
     remainder_scale: float = 1.0,
+    enclosure: str | None = None,
+    propagate: str | None = None,
 ) -> tuple[Bounds, Certificate]:
     """Bands proven to contain the output of every constant-parameter run, and their certificate.
 
@@ -770,6 +992,18 @@ def certified_bounds(
             ``int (1 - s) ds`` over each segment (more: tighter and slower).
         remainder_scale: multiplies the remainder's input; anything but 1 voids
             the guarantee (for mutation tests only).
+        enclosure: how the Hessian of the perturbation is enclosed over the tube:
+            ``"interval"`` (interval 2-jets) or ``"affine"`` (affine forms in the
+            parameters and the remainder, rounding bounded: tighter, about 2x slower
+            at two joints, needed from three). None: interval up to two joints,
+            affine above.
+        propagate: how the remainder bound is carried from step to step:
+            ``"kernel"`` (the nominal loop's powers, every feedback of the
+            remainder on itself in absolute value) or ``"carried"`` (generators
+            through each piece's own linearised loop, the parameters' effect on that
+            loop a coefficient: bounded at four joints where ``"kernel"`` diverges).
+            None: kernel up to two joints, carried above. The certificate checker
+            re-verifies ``"kernel"`` and ``"interval"`` certificates only.
 
     Returns:
         ``(bounds, certificate)``: :class:`~rmijax.methods.base.Bounds` with
@@ -816,8 +1050,19 @@ def certified_bounds(
     hi_noise = jnp.broadcast_to(hi_noise, (n, 2))
     kernel_steps = _checks.positive_int("kernel_steps", kernel_steps, "steps")
     segments = _checks.positive_int("segments", segments)
+    enclosure = _choice("enclosure", enclosure, ("interval", "affine"), n)
+    propagate = _choice("propagate", propagate, ("kernel", "carried"), n)
     centers, los, his, pieces, kernel, tail = _certify_box(
-        traj, params, lo_noise, hi_noise, splits, kernel_steps, segments, remainder_scale
+        traj,
+        params,
+        lo_noise,
+        hi_noise,
+        splits,
+        kernel_steps,
+        segments,
+        remainder_scale,
+        enclosure=enclosure,
+        propagate=propagate,
     )
     lower = jnp.min(pieces["lower"], axis=0)
     upper = jnp.max(pieces["upper"], axis=0)
@@ -847,5 +1092,17 @@ def certified_bounds(
         noise_lo=lo_noise,
         noise_hi=hi_noise,
         segments=segments,
+        enclosure=enclosure,
+        propagate=propagate,
     )
     return bounds, certificate
+
+
+def _choice(name, value, options, n_joints):
+    """``value`` if it is one of ``options``; None: the first up to two joints, else the
+    second."""
+    if value is None:
+        return options[0] if n_joints <= 2 else options[1]
+    if value not in options:
+        raise ValueError(f"{name} must be one of {options} or None, got {value!r}")
+    return value
