@@ -22,12 +22,18 @@ With ``--remainder``: how tight the remainder bound is on the tests' pendulum fi
 over the corners and 200 draws as a share of the bounds ``r_k`` and ``w_k``, and how far
 samples leave the band when the remainder is halved or switched off.
 
+``--enclosure`` and ``--propagate`` choose ``certified``'s enclosure of the Hessian
+(interval or affine) and how the remainder is carried (kernel or carried); by default
+each is chosen by the number of joints (see :func:`rmijax.certified_bounds`).
+
 Examples::
 
     PYTHONPATH=src python3 benchmarks/certified.py --cases arm2_hold_sine --duration 15 \\
         --json benchmarks/results/certified_cpu.json
     PYTHONPATH=src python3 benchmarks/certified.py --faults --duration 15 \\
         --json benchmarks/results/certified_faults_cpu.json
+    PYTHONPATH=src python3 benchmarks/certified.py --cases preset4_sine --duration 1 \\
+        --cold-only --json benchmarks/results/certified_preset4_affine_cpu.json
 """
 
 from __future__ import annotations
@@ -67,18 +73,21 @@ def _samples(params, draws, seed=0):
     return np.concatenate(rows)
 
 
-def run_case(name, duration, draws, every, splits):
+def run_case(name, duration, draws, every, splits, options=None, warm=True):
     builder, paths = CASES[name]
     params = builder()
     traj = rmijax.trajectory(paths, duration=duration)
+    options = dict(options or {})
     start = time.perf_counter()
-    bounds, cert = certified_bounds(traj, params, splits=splits)
+    bounds, cert = certified_bounds(traj, params, splits=splits, **options)
     bounds.upper.block_until_ready()
     seconds = time.perf_counter() - start
-    start = time.perf_counter()
-    again, _ = certified_bounds(traj, params, splits=splits)
-    again.upper.block_until_ready()
-    seconds_warm = time.perf_counter() - start
+    seconds_warm = None
+    if warm:
+        start = time.perf_counter()
+        again, _ = certified_bounds(traj, params, splits=splits, **options)
+        again.upper.block_until_ready()
+        seconds_warm = round(time.perf_counter() - start, 2)
     upper, lower = np.asarray(bounds.upper), np.asarray(bounds.lower)
     times = np.arange(0.5, duration + 1e-9, every)
     steps = np.round(times / traj.dt).astype(int)
@@ -121,9 +130,11 @@ def run_case(name, duration, draws, every, splits):
         case=name,
         n=params.n_joints,
         pieces=int(cert.n_pieces),
+        enclosure=cert.enclosure,
+        propagate=cert.propagate,
         steps=traj.n_steps,
         seconds=round(seconds, 2),
-        seconds_warm=round(seconds_warm, 2),
+        seconds_warm=seconds_warm,
         samples=total,
         samples_outside=escapes,
         maximisers=len(maximisers),
@@ -325,6 +336,15 @@ def main(argv=None):
     parser.add_argument("--draws", type=int, default=1000, help="uniform parameter draws")
     parser.add_argument("--every", type=float, default=0.5, help="scored times, every s")
     parser.add_argument("--splits", type=int, default=None, help="mass splits (default: auto)")
+    parser.add_argument(
+        "--enclosure", choices=("interval", "affine"), default=None, help="default: auto"
+    )
+    parser.add_argument(
+        "--propagate", choices=("kernel", "carried"), default=None, help="default: auto"
+    )
+    parser.add_argument(
+        "--cold-only", action="store_true", help="time one call only (no warm second call)"
+    )
     parser.add_argument("--json", help="write the results to this JSON file")
     parser.add_argument(
         "--faults", action="store_true", help="run the fault suite on the paper fault case"
@@ -359,7 +379,16 @@ def main(argv=None):
     for name in args.cases:
         started = time.perf_counter()
         try:
-            row = run_case(name, args.duration, args.draws, args.every, args.splits)
+            options = dict(enclosure=args.enclosure, propagate=args.propagate)
+            row = run_case(
+                name,
+                args.duration,
+                args.draws,
+                args.every,
+                args.splits,
+                options,
+                warm=not args.cold_only,
+            )
         except DivergedError as err:  # the bound blew up: record where, and go on
             seconds = round(time.perf_counter() - started, 2)
             row = dict(case=name, diverged=str(err), seconds=seconds)

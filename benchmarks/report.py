@@ -367,7 +367,13 @@ def agreement_table():
     return _table(header, rows)
 
 
-CERTIFIED_FILES = ("certified_cpu.json", "certified_presets_cpu.json", "certified_preset6_cpu.json")
+CERTIFIED_FILES = (
+    "certified_cpu.json",
+    "certified_arm2_affine_cpu.json",
+    "certified_presets_cpu.json",
+    "certified_preset6_cpu.json",
+    "certified_preset4_affine_cpu.json",
+)
 """Results of ``benchmarks/certified.py``, in the order the table lists them."""
 
 
@@ -381,15 +387,18 @@ def certified_table():
             if "diverged" in r:
                 step = r["diverged"].split("(step ")[1].split(",")[0]
                 rows.append(
-                    (f"`{r['case']}`", f"{duration} s", f"diverged at step {step}")
+                    (f"`{r['case']}`", f"{duration} s", "interval / kernel")
+                    + (f"diverged at step {step}",)
                     + ("-",) * 5
                     + (f"{r['seconds']:.1f}", "-")
                 )
                 continue
+            warm = r.get("seconds_warm")
             rows.append(
                 (
                     f"`{r['case']}`",
                     f"{duration} s",
+                    f"{r.get('enclosure', 'interval')} / {r.get('propagate', 'kernel')}",
                     f"{r['samples_outside']} of {r['samples']}",
                     f"{r['maximisers_outside']} of {r['maximisers']}",
                     f"{r['attack_outside']} of {r['attack_runs']}",
@@ -397,12 +406,13 @@ def certified_table():
                     " / ".join(f"{r['tachometer_' + k]:.3f}" for k in ("median", "p90", "min")),
                     r["pieces"],
                     f"{r['seconds']:.1f}",
-                    f"{r['seconds_warm']:.1f}",
+                    "-" if warm is None else f"{warm:.1f}",
                 )
             )
     header = (
         "case",
         "run",
+        "enclosure / remainder",
         "runs outside (corners + draws)",
         "maximisers outside",
         "attack finds outside",

@@ -436,7 +436,7 @@ def simulate_batch(
     return x_true, y_meas
 
 
-def _certified_body(run, shared, *, noisy, kernel_steps, segments):
+def _certified_body(run, shared, *, noisy, kernel_steps, segments, enclosure, propagate):
     from rmijax.methods import certified
 
     traj, params, centers, los, his = run
@@ -453,6 +453,8 @@ def _certified_body(run, shared, *, noisy, kernel_steps, segments):
         noisy=noisy,
         kernel_steps=kernel_steps,
         segments=segments,
+        enclosure=enclosure,
+        propagate=propagate,
     )
     return jnp.min(pieces["lower"], axis=0), jnp.max(pieces["upper"], axis=0)
 
@@ -466,6 +468,8 @@ def certified_batch(
     splits=None,
     kernel_steps: int | None = None,
     segments: int = 3,
+    enclosure: str | None = None,
+    propagate: str | None = None,
     mesh: Mesh | None = None,
 ) -> list[Bounds]:
     """:func:`rmijax.methods.certified.certified_bounds` of many runs, sharded like
@@ -474,7 +478,8 @@ def certified_batch(
     Args:
         trajs, params: as :func:`rmi_batch` (planar point-mass arms, float64; every
             box split into the same number of pieces).
-        noise_lo, noise_hi, splits, kernel_steps, segments: as ``certified_bounds``.
+        noise_lo, noise_hi, splits, kernel_steps, segments, enclosure, propagate: as
+            ``certified_bounds``.
         mesh: default :func:`device_mesh` over every device.
 
     Returns:
@@ -518,7 +523,15 @@ def certified_batch(
     ]
     mesh = device_mesh() if mesh is None else mesh
     shared = (lo, hi, jnp.asarray(1.0, jnp.float64))
-    static = dict(noisy=noisy, kernel_steps=kernel_steps, segments=segments)
+    enclosure = certified._choice("enclosure", enclosure, ("interval", "affine"), n)
+    propagate = certified._choice("propagate", propagate, ("kernel", "carried"), n)
+    static = dict(
+        noisy=noisy,
+        kernel_steps=kernel_steps,
+        segments=segments,
+        enclosure=enclosure,
+        propagate=propagate,
+    )
     lower, upper = _run_batched(_certified_body, _stack(runs, mesh.size), shared, mesh, static)
     results = []
     for r, length in enumerate(lengths):

@@ -135,6 +135,66 @@ def test_checker_accepts_the_certificate_and_rejects_tampering(pendulum):
     assert not check_certificate(half_box, traj, params, steps=steps).ok
 
 
+@pytest.fixture(scope="module")
+def pendulum_affine(pendulum):
+    traj, params, _, _ = pendulum
+    bounds, cert = certified_bounds(traj, params, splits=2, enclosure="affine", propagate="carried")
+    return traj, params, bounds, cert
+
+
+def test_affine_carried_contains_samples_and_is_narrower(pendulum, pendulum_affine):
+    """The affine enclosure with the carried remainder: every sample inside, the band no
+    wider than the interval/kernel one at any step (its remainder is much smaller)."""
+    traj, params, bounds, cert = pendulum_affine
+    assert (cert.enclosure, cert.propagate) == ("affine", "carried")
+    states = np.asarray(rmijax.simulate(traj, params, _samples(params))[0])
+    assert _escape(bounds, states) <= TOL
+    width, width_kernel = np.asarray(bounds.width), np.asarray(pendulum[2].width)
+    assert np.all(width <= width_kernel * (1 + 1e-9))
+    remainder = np.asarray(cert.remainder).max(0)[50:]
+    assert np.median(remainder / np.asarray(pendulum[3].remainder).max(0)[50:]) < 0.2
+
+
+@pytest.mark.parametrize("scale", [0.0, 0.5])
+def test_carried_remainder_switched_off_or_halved_lets_samples_escape(pendulum_affine, scale):
+    traj, params, bounds, _ = pendulum_affine
+    mutant, _ = certified_bounds(
+        traj, params, splits=2, enclosure="affine", propagate="carried", remainder_scale=scale
+    )
+    states = np.asarray(rmijax.simulate(traj, params, _samples(params))[0])
+    assert _escape(bounds, states) <= TOL
+    assert _escape(mutant, states) > 1e-12
+
+
+def test_checker_refuses_what_it_cannot_verify(pendulum_affine):
+    traj, params, _, cert = pendulum_affine
+    with pytest.raises(NotImplementedError, match="carried"):
+        check_certificate(cert, traj, params, steps=2)
+    with pytest.raises(ValueError, match="enclosure"):
+        certified_bounds(traj, params, enclosure="zonotope")
+    with pytest.raises(ValueError, match="propagate"):
+        certified_bounds(traj, params, propagate="nominal")
+
+
+@pytest.mark.slow
+def test_four_links_contain_every_corner_and_draws():
+    """The default at four joints (affine enclosure, carried remainder, 81 pieces): a
+    bounded band over 0.3 s holding every one of the 256 corners and 300 draws; with the
+    interval/kernel pair it diverges."""
+    params = rmijax.preset_arm(4)
+    traj = rmijax.trajectory(["sine"] * 4, duration=0.3)
+    bounds, cert = certified_bounds(traj, params)
+    assert (cert.enclosure, cert.propagate, cert.n_pieces) == ("affine", "carried", 81)
+    states = np.asarray(rmijax.simulate(traj, params, _samples(params))[0])
+    assert _escape(bounds, states) <= TOL
+    reached = states.max(0) - states.min(0)
+    ratio = np.asarray(bounds.width)[10:] / reached[10:]
+    assert np.all(ratio >= 1.0 - 1e-9)
+    assert np.median(ratio) <= 1.5
+    with pytest.raises(rmijax.DivergedError):
+        certified_bounds(traj, params, enclosure="interval", propagate="kernel")
+
+
 def test_zero_width_box_gives_the_nominal(pendulum):
     traj, params, _, _ = pendulum
     point = params.with_box(lo=params.nominal, hi=params.nominal)
