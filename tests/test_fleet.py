@@ -170,3 +170,17 @@ def test_two_processes_share_one_mesh():
         assert proc.returncode == 0, err[-3000:]
         line = next(v for v in out.splitlines() if v.startswith("ERROR "))
         assert float(line.split()[1]) <= 1e-12
+
+
+def test_certified_batch_passes_the_enclosure_and_propagation_on():
+    """``certified_batch`` with the affine/carried pair equals the single-run call (and so
+    differs from the interval/kernel default)."""
+    params = rmijax.paper_pendulum()
+    traj = rmijax.trajectory(["sine"], duration=0.3)
+    options = dict(splits=2, enclosure="affine", propagate="carried")
+    (batch,) = fleet.certified_batch([traj], [params], **options)
+    single = rmijax.certified_bounds(traj, params, **options)[0]
+    np.testing.assert_allclose(batch.upper, single.upper, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(batch.lower, single.lower, rtol=0, atol=1e-15)
+    (default,) = fleet.certified_batch([traj], [params], splits=2)
+    assert np.max(np.asarray(default.width) - np.asarray(batch.width)) > 0

@@ -17,6 +17,7 @@ LAYERS = {
     "rmijax._checks": 0,
     "rmijax._linalg": 0,
     "rmijax._intervals": 0,
+    "rmijax._affine": 0,
     "rmijax.robots": 1,
     "rmijax.control": 2,
     "rmijax.trajectory": 2,
