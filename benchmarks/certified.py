@@ -132,6 +132,7 @@ def run_case(name, duration, draws, every, splits, options=None, warm=True):
         pieces=int(cert.n_pieces),
         enclosure=cert.enclosure,
         propagate=cert.propagate,
+        segments=int(cert.segments),
         steps=traj.n_steps,
         seconds=round(seconds, 2),
         seconds_warm=seconds_warm,
@@ -343,6 +344,9 @@ def main(argv=None):
         "--propagate", choices=("kernel", "carried"), default=None, help="default: auto"
     )
     parser.add_argument(
+        "--segments", type=int, default=3, help="radial segments of the Lagrange remainder"
+    )
+    parser.add_argument(
         "--cold-only", action="store_true", help="time one call only (no warm second call)"
     )
     parser.add_argument("--json", help="write the results to this JSON file")
@@ -379,7 +383,9 @@ def main(argv=None):
     for name in args.cases:
         started = time.perf_counter()
         try:
-            options = dict(enclosure=args.enclosure, propagate=args.propagate)
+            options = dict(
+                enclosure=args.enclosure, propagate=args.propagate, segments=args.segments
+            )
             row = run_case(
                 name,
                 args.duration,

@@ -370,6 +370,7 @@ def agreement_table():
 CERTIFIED_FILES = (
     "certified_cpu.json",
     "certified_arm2_affine_cpu.json",
+    "certified_arm2_affine_seg1_cpu.json",
     "certified_presets_cpu.json",
     "certified_preset6_cpu.json",
     "certified_preset4_affine_cpu.json",
@@ -398,7 +399,8 @@ def certified_table():
                 (
                     f"`{r['case']}`",
                     f"{duration} s",
-                    f"{r.get('enclosure', 'interval')} / {r.get('propagate', 'kernel')}",
+                    f"{r.get('enclosure', 'interval')} / {r.get('propagate', 'kernel')}"
+                    + (f", {r['segments']} segment" if r.get("segments", 3) != 3 else ""),
                     f"{r['samples_outside']} of {r['samples']}",
                     f"{r['maximisers_outside']} of {r['maximisers']}",
                     f"{r['attack_outside']} of {r['attack_runs']}",
