@@ -33,7 +33,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from rmijax._intervals import Jet
+from rmijax._intervals import Jet, jet_branches, replay
 
 __all__ = ["AffineForm", "AffineBackend", "run_affine_tape"]
 
@@ -270,45 +270,6 @@ class AffineBackend:
         return AffineForm.point(value, self.k)
 
 
-def _branches(m, k, dtype):
-    backend = AffineBackend(k)
-
-    def form(c, a, e):
-        return AffineForm(c, a, e)
-
-    def jet(row):
-        return Jet(form(*row[0:3]), form(*row[3:6]), form(*row[6:9]), backend)
-
-    def flat(j):
-        return tuple(leaf for part in (j.v, j.g, j.h) for leaf in (part.c, part.a, part.e))
-
-    def const(a, b, lit):
-        zero = jnp.zeros((), dtype)
-        return (
-            lit,
-            jnp.zeros((k,), dtype),
-            zero,
-            jnp.zeros((m,), dtype),
-            jnp.zeros((m, k), dtype),
-            jnp.zeros((m,), dtype),
-            jnp.zeros((m, m), dtype),
-            jnp.zeros((m, m, k), dtype),
-            jnp.zeros((m, m), dtype),
-        )
-
-    return [
-        const,
-        lambda a, b, lit: flat(jet(a) + jet(b)),
-        lambda a, b, lit: flat(jet(a) - jet(b)),
-        lambda a, b, lit: flat(jet(a) * jet(b)),
-        lambda a, b, lit: flat(-jet(a)),
-        lambda a, b, lit: flat(jet(a).reciprocal()),
-        lambda a, b, lit: flat(jet(a).square()),
-        lambda a, b, lit: flat(jet(a).sin()),
-        lambda a, b, lit: flat(jet(a).cos()),
-    ]
-
-
 def run_affine_tape(tape_arrays, leaves, outputs):
     """Replay a tape on second-order jets of affine forms.
 
@@ -321,28 +282,24 @@ def run_affine_tape(tape_arrays, leaves, outputs):
     Returns:
         ``(value, grad, hess)`` :class:`AffineForm` of shapes (r,), (r, m), (r, m, m).
     """
-    ops, args, lits = (jnp.asarray(x) for x in tape_arrays)
     value, grad, hess = leaves
-    n_leaves, m = grad.c.shape
-    k = value.n_symbols
+    m, k = grad.c.shape[1], value.n_symbols
     dtype = value.c.dtype
-    size = n_leaves + ops.shape[0]
-    flat = [leaf for part in (value, grad, hess) for leaf in (part.c, part.a, part.e)]
-    buffers = tuple(
-        jnp.concatenate([leaf, jnp.zeros((size - n_leaves,) + leaf.shape[1:], dtype)])
-        for leaf in flat
-    )
-    branches = _branches(m, k, dtype)
+    backend = AffineBackend(k)
 
-    def body(i, buffers):
-        op, (a, b), lit = ops[i], args[i], lits[i].astype(dtype)
-        first = tuple(buf[a] for buf in buffers)
-        second = tuple(buf[b] for buf in buffers)
-        result = jax.lax.switch(op, branches, first, second, lit)
-        row = n_leaves + i
-        return tuple(buf.at[row].set(r) for buf, r in zip(buffers, result, strict=True))
+    def jet(row):
+        return Jet(AffineForm(*row[0:3]), AffineForm(*row[3:6]), AffineForm(*row[6:9]), backend)
 
-    buffers = jax.lax.fori_loop(0, ops.shape[0], body, buffers)
-    rows = jnp.asarray(outputs)
-    out = [buf[rows] for buf in buffers]
+    def flat(j):
+        return tuple(leaf for part in (j.v, j.g, j.h) for leaf in (part.c, part.a, part.e))
+
+    def const(lit):
+        zero = jnp.zeros((), dtype)
+        rows = (lit, jnp.zeros((k,), dtype), zero)
+        rows += (jnp.zeros((m,), dtype), jnp.zeros((m, k), dtype), jnp.zeros((m,), dtype))
+        rows += (jnp.zeros((m, m), dtype), jnp.zeros((m, m, k), dtype))
+        return rows + (jnp.zeros((m, m), dtype),)
+
+    flat_leaves = [leaf for part in leaves for leaf in (part.c, part.a, part.e)]
+    out = replay(tape_arrays, flat_leaves, jet_branches(jet, flat, const), outputs)
     return AffineForm(*out[0:3]), AffineForm(*out[3:6]), AffineForm(*out[6:9])

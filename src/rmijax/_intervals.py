@@ -396,21 +396,14 @@ class _Node:
         return self.tape._push("cos", self.index)
 
 
-def _branches(m, dtype):
-    zero_g = jnp.zeros((m,), dtype)
-    zero_h = jnp.zeros((m, m), dtype)
+def jet_branches(jet, flat, const):
+    """The ``switch`` branches of a tape replay, one per op code of :data:`_OPS`.
 
-    def jet(a):
-        return Jet(Interval(a[0], a[1]), Interval(a[2], a[3]), Interval(a[4], a[5]), JAX_BACKEND)
-
-    def flat(j):
-        return (j.v.lo, j.v.hi, j.g.lo, j.g.hi, j.h.lo, j.h.hi)
-
-    def const(a, b, lit):
-        return (lit, lit, zero_g, zero_g, zero_h, zero_h)
-
+    ``jet(row)`` builds a :class:`Jet` from one buffer row (a tuple of arrays), ``flat(j)``
+    flattens one back, ``const(lit)`` is a literal's row.
+    """
     return [
-        const,
+        lambda a, b, lit: const(lit),
         lambda a, b, lit: flat(jet(a) + jet(b)),
         lambda a, b, lit: flat(jet(a) - jet(b)),
         lambda a, b, lit: flat(jet(a) * jet(b)),
@@ -420,6 +413,41 @@ def _branches(m, dtype):
         lambda a, b, lit: flat(jet(a).sin()),
         lambda a, b, lit: flat(jet(a).cos()),
     ]
+
+
+def replay(tape_arrays, leaves, branches, outputs):
+    """Replay a tape: one ``fori_loop`` step per op, each a ``switch`` over ``branches``.
+
+    Args:
+        tape_arrays: ``(ops, args, lits)`` from :meth:`Tape.arrays`.
+        leaves: arrays with the ``L`` leaves' rows on their first axis (the buffers'
+            layout, whatever the backend).
+        branches: from :func:`jet_branches`.
+        outputs: (k,) rows wanted.
+
+    Returns:
+        The buffers' rows ``outputs``, one array per leaf array.
+    """
+    ops, args, lits = (jnp.asarray(a) for a in tape_arrays)
+    n_leaves = leaves[0].shape[0]
+    dtype = leaves[0].dtype
+    size = n_leaves + ops.shape[0]
+    buffers = tuple(
+        jnp.concatenate([leaf, jnp.zeros((size - n_leaves,) + leaf.shape[1:], dtype)])
+        for leaf in leaves
+    )
+
+    def body(i, buffers):
+        op, (a, b), lit = ops[i], args[i], lits[i].astype(dtype)
+        first = tuple(buf[a] for buf in buffers)
+        second = tuple(buf[b] for buf in buffers)
+        result = jax.lax.switch(op, branches, first, second, lit)
+        row = n_leaves + i
+        return tuple(buf.at[row].set(r) for buf, r in zip(buffers, result, strict=True))
+
+    buffers = jax.lax.fori_loop(0, ops.shape[0], body, buffers)
+    rows = jnp.asarray(outputs)
+    return tuple(buf[rows] for buf in buffers)
 
 
 def run_tape(tape_arrays, leaves, outputs):
@@ -433,25 +461,19 @@ def run_tape(tape_arrays, leaves, outputs):
     Returns:
         ``(value, grad, hess)`` Intervals (k,), (k, m), (k, m, m).
     """
-    ops, args, lits = (jnp.asarray(a) for a in tape_arrays)
-    n_leaves, m = leaves[2].shape
+    m = leaves[2].shape[1]
     dtype = leaves[0].dtype
-    size = n_leaves + ops.shape[0]
-    buffers = tuple(
-        jnp.concatenate([leaf, jnp.zeros((size - n_leaves,) + leaf.shape[1:], dtype)])
-        for leaf in leaves
-    )
-    branches = _branches(m, dtype)
+    zero_g = jnp.zeros((m,), dtype)
+    zero_h = jnp.zeros((m, m), dtype)
 
-    def body(i, buffers):
-        op, (a, b), lit = ops[i], args[i], lits[i].astype(dtype)
-        first = tuple(buf[a] for buf in buffers)
-        second = tuple(buf[b] for buf in buffers)
-        result = jax.lax.switch(op, branches, first, second, lit)
-        row = n_leaves + i
-        return tuple(buf.at[row].set(r) for buf, r in zip(buffers, result, strict=True))
+    def jet(a):
+        return Jet(Interval(a[0], a[1]), Interval(a[2], a[3]), Interval(a[4], a[5]), JAX_BACKEND)
 
-    buffers = jax.lax.fori_loop(0, ops.shape[0], body, buffers)
-    rows = jnp.asarray(outputs)
-    out = tuple(buf[rows] for buf in buffers)
+    def flat(j):
+        return (j.v.lo, j.v.hi, j.g.lo, j.g.hi, j.h.lo, j.h.hi)
+
+    def const(lit):
+        return (lit, lit, zero_g, zero_g, zero_h, zero_h)
+
+    out = replay(tape_arrays, leaves, jet_branches(jet, flat, const), outputs)
     return Interval(out[0], out[1]), Interval(out[2], out[3]), Interval(out[4], out[5])
