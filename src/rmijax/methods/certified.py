@@ -37,6 +37,17 @@ induction in which every step's ``w_k`` is computed over the tube that
 (one-dimensional quadratics exactly, cross terms by interval products), plus
 ``r_k`` and the noise bounds, rounded outward.
 
+That is ``enclosure="interval"``, ``propagate="kernel"``, the default up to two
+joints and the pair :func:`rmijax.methods.certificate_check.check_certificate`
+re-verifies. From three joints the default is ``enclosure="affine"`` (the Hessian over
+the tube on affine forms with rounding bounded, :mod:`rmijax._affine`, one symbol per
+variable of ``(d, R, eta)``, the state ``x_c + S d + R`` exact in them) and
+``propagate="carried"``: ``R = G eps + sum_b d_b G^b eps`` through each piece's own
+linearised loop ``A_c`` (``G^b`` picks up ``dt e2 H_b G``, the mass error acting on the
+loop's gain), ``2n`` new generators a step sized by the bounded input and the products'
+rounding (:func:`_carried_terms`, :func:`_carry_generators`). Tighter, and bounded at
+four joints where the kernel diverges; no independent checker yet.
+
 Supported models: the planar point-mass arm (:func:`rmijax.planar_arm`,
 :func:`rmijax.preset_arm`, ...), whose ``M`` and ``h`` the interval jets
 evaluate in their closed form. Other models are refused with a
