@@ -33,7 +33,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from rmijax._intervals import Jet, jet_branches, replay
+from rmijax._intervals import Jet, down, jet_branches, replay, up
 
 __all__ = ["AffineForm", "AffineBackend", "run_affine_tape"]
 
@@ -111,8 +111,7 @@ class AffineForm:
     def bounds(self):
         """``(lo, hi)`` floats enclosing every value of the form."""
         r = self.rad()
-        lo, hi = self.c - r, self.c + r
-        return lo - (jnp.abs(lo) * _REL + _TINY), hi + (jnp.abs(hi) * _REL + _TINY)
+        return down(self.c - r), up(self.c + r)
 
     def __getitem__(self, index):
         index = index if isinstance(index, tuple) else (index,)
@@ -171,11 +170,7 @@ class AffineForm:
 
 def _recip_positive(x):
     """``1/x`` for forms whose range is in ``(0, inf)``; ``e = inf`` where it is not."""
-    r = x.rad()
-    lo = x.c - r
-    lo = lo - (jnp.abs(lo) * _REL + _TINY)
-    hi = x.c + r
-    hi = hi + (jnp.abs(hi) * _REL + _TINY)
+    lo, hi = x.bounds()
     ok = lo > 0
     lo = jnp.where(ok, lo, 1.0)
     hi = jnp.where(ok, hi, 1.0)

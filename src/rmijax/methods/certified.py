@@ -636,12 +636,6 @@ def _certify_piece(
             )
 
         def segment_spread(s_hi, weight):
-            sd_box = d_box * s_hi  # rounded outward: holds s D for every s <= s_hi
-            low, high = _poly_range(sens, sens2, sd_box.lo, sd_box.hi)
-            tube = Interval(xc) + Interval(low, high) + Interval(-rhat, rhat) * s_hi
-            grad_d = Interval(sens) + (Interval(sens2) * sd_box[None, None, None, :]).sum(-1)
-            th_box = Interval(center) + sd_box
-            noise_s = noise_box * s_hi if noisy else None
             if enclosure == "affine":
                 h_box = Interval(
                     *_evaluate_affine(
@@ -657,6 +651,12 @@ def _certify_piece(
                     )
                 )
             else:
+                sd_box = d_box * s_hi  # rounded outward: holds s D for every s <= s_hi
+                low, high = _poly_range(sens, sens2, sd_box.lo, sd_box.hi)
+                tube = Interval(xc) + Interval(low, high) + Interval(-rhat, rhat) * s_hi
+                grad_d = Interval(sens) + (Interval(sens2) * sd_box[None, None, None, :]).sum(-1)
+                th_box = Interval(center) + sd_box
+                noise_s = noise_box * s_hi if noisy else None
                 _, _, h_box = _evaluate(tube, grad_d, sens2, th_box, noise_s, consts, None)
             return (h_box - centre_h).mag() * weight
 
@@ -838,7 +838,6 @@ def _w_blocks(linear, quadratic, n, p):
         "diagnostics",
         "enclosure",
         "propagate",
-        "batch",
     ),
 )
 def _certify(
@@ -857,7 +856,6 @@ def _certify(
     diagnostics=False,
     enclosure="interval",
     propagate="kernel",
-    batch=None,
 ):
     kernel, tail = _kernel(traj.kp, traj.kd, traj.dt, kernel_steps)
     run = functools.partial(
@@ -875,10 +873,11 @@ def _certify(
         enclosure=enclosure,
         propagate=propagate,
     )
-    if batch is None:
+    if enclosure == "affine" and centers.shape[0] > _AFFINE_BATCH:
+        # pieces in batches: the affine jets' buffers are large
+        pieces = jax.lax.map(lambda a: run(*a), (centers, los, his), batch_size=_AFFINE_BATCH)
+    else:
         pieces = jax.vmap(run)(centers, los, his)
-    else:  # pieces in batches: the affine jets' buffers are large
-        pieces = jax.lax.map(lambda a: run(*a), (centers, los, his), batch_size=batch)
     return pieces, kernel, tail
 
 
@@ -962,7 +961,6 @@ def _certify_box(
         diagnostics=diagnostics,
         enclosure=enclosure,
         propagate=propagate,
-        batch=_AFFINE_BATCH if enclosure == "affine" and len(centers) > _AFFINE_BATCH else None,
     )
     return centers, los, his, pieces, kernel, tail
 
