@@ -17,6 +17,10 @@ the paper's true parameters, every fault kind of the default suite on both
 joints at 3 s): latency, misses and false alarms of the ``certified``, ``rmi``
 and ``empirical`` bands, and the false alarms of the fault-free run.
 
+With ``--checker``: :func:`rmijax.methods.certificate_check.check_certificate` on every
+enclosure/propagate pair (pendulum, two-joint arm; ``preset_arm(4)`` affine/carried):
+accepted, the halved-remainder mutant's certificate rejected, seconds per step and piece.
+
 With ``--remainder``: how tight the remainder bound is on the tests' pendulum fixture
 (``sine``, 1 s, ``splits=2``): the largest true remainder ``|R_k|`` and input ``|xi_k|``
 over the corners and 200 draws as a share of the bounds ``r_k`` and ``w_k``, and how far
@@ -231,6 +235,74 @@ def run_remainder(duration=1.0, splits=2, draws=200):
 FAULT_METHODS = ("certified", "rmi", "empirical")
 
 
+CHECKER_RUNS = (
+    # case, duration (s), splits, pairs, steps checked (None: all), pieces checked
+    ("pendulum_sine", 1.0, 2, "all", None, None),
+    ("arm2_hold_sine", 1.0, None, "all", 5, "ends"),
+    ("preset4_sine", 0.05, None, (("affine", "carried"),), 2, "ends"),
+)
+PAIRS = (
+    ("interval", "kernel"),
+    ("affine", "carried"),
+    ("interval", "carried"),
+    ("affine", "kernel"),
+)
+
+
+def run_checker():
+    """The independent checker on each enclosure/propagate pair: does it accept the
+    certificate, does it reject the halved-remainder mutant's, and how long it takes.
+
+    Pieces ``"ends"``: the first and the middle one. Times are seconds per checked step
+    and piece (pure Python ``mpmath``, one core).
+    """
+    from rmijax.methods.certificate_check import check_certificate
+
+    rows = []
+    for name, duration, splits, pairs, steps, pieces in CHECKER_RUNS:
+        make, paths = CASES[name]
+        params = make()
+        traj = rmijax.trajectory(paths, duration=duration)
+        for enclosure, propagate in PAIRS if pairs == "all" else pairs:
+            options = dict(splits=splits, enclosure=enclosure, propagate=propagate)
+            started = time.perf_counter()
+            _, cert = certified_bounds(traj, params, **options)
+            certify_s = time.perf_counter() - started
+            chosen = None if pieces is None else [0, cert.n_pieces // 2]
+            count = traj.n_steps if steps is None else steps
+            started = time.perf_counter()
+            result = check_certificate(cert, traj, params, steps=count, pieces=chosen)
+            check_s = time.perf_counter() - started
+            _, mutant = certified_bounds(traj, params, remainder_scale=0.5, **options)
+            rejected = check_certificate(mutant, traj, params, steps=count, pieces=chosen)
+            checked = cert.n_pieces if chosen is None else len(chosen)
+            row = dict(
+                case=name,
+                duration=duration,
+                enclosure=enclosure,
+                propagate=propagate,
+                pieces=cert.n_pieces,
+                pieces_checked=checked,
+                steps_checked=result.steps,
+                accepted=bool(result.ok),
+                reason=result.reason,
+                halved_rejected=not rejected.ok,
+                halved_reason=rejected.reason,
+                certify_seconds=round(certify_s, 1),
+                check_seconds=round(check_s, 1),
+                seconds_per_step_piece=round(check_s / max(result.steps * checked, 1), 3),
+            )
+            rows.append(row)
+            print(
+                f"{name:16} {enclosure:>8}/{propagate:<7} pieces {checked}/{cert.n_pieces} "
+                f"steps {result.steps:>3} accepted {row['accepted']!s:5} "
+                f"halved rejected {row['halved_rejected']!s:5} "
+                f"{row['seconds_per_step_piece']:.3f} s/step/piece",
+                flush=True,
+            )
+    return dict(runs=rows)
+
+
 def run_faults(duration, onset=3.0):
     """The default fault suite on the paper fault case against each method's band."""
     from rmijax.apps.experiments import fault_table, paper_true_parameters
@@ -356,7 +428,17 @@ def main(argv=None):
     parser.add_argument(
         "--remainder", action="store_true", help="measure how tight the remainder bound is"
     )
+    parser.add_argument(
+        "--checker", action="store_true", help="run the certificate checker on every pair"
+    )
     args = parser.parse_args(argv)
+    if args.checker:
+        result = run_checker()
+        if args.json:
+            record = dict(meta=run_meta("benchmarks/certified.py", dtype="float64"), **result)
+            with open(args.json, "w") as handle:
+                json.dump(record, handle, indent=1)
+        return result
     if args.remainder:
         result = run_remainder()
         print(json.dumps(result, indent=1))

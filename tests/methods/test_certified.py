@@ -183,14 +183,110 @@ def test_carried_remainder_switched_off_or_halved_lets_samples_escape(pendulum_a
     assert _escape(mutant, states) > 1e-6  # halved: 5e-6 rad/s at 4 steps; off: 3e-5
 
 
-def test_checker_refuses_what_it_cannot_verify(pendulum_affine):
+PAIRS = [
+    ("interval", "kernel"),
+    ("affine", "carried"),
+    ("interval", "carried"),
+    ("affine", "kernel"),
+]
+
+
+@pytest.mark.parametrize("pair", PAIRS, ids=["/".join(p) for p in PAIRS])
+def test_checker_verifies_every_pair_and_rejects_the_halved_remainder(pendulum, pair):
+    """The checker re-verifies each enclosure/propagate pair (affine jets and its own
+    carried generators on mpmath) and rejects the certificate of the mutant certifier
+    whose remainder is halved: a self-consistent certificate of a band that samples
+    leave (the mutation test above)."""
+    traj, params, _, _ = pendulum
+    options = dict(splits=2, enclosure=pair[0], propagate=pair[1])
+    _, cert = certified_bounds(traj, params, **options)
+    assert (cert.enclosure, cert.propagate) == pair
+    assert check_certificate(cert, traj, params, steps=12).ok
+    _, mutant = certified_bounds(traj, params, remainder_scale=0.5, **options)
+    result = check_certificate(mutant, traj, params, steps=12)
+    assert not result.ok and "remainder input" in result.reason
+
+
+def test_checker_rejects_tampered_carried_certificates(pendulum_affine):
     traj, params, _, cert = pendulum_affine
-    with pytest.raises(NotImplementedError, match="carried"):
-        check_certificate(cert, traj, params, steps=2)
+    steps = 6
+    assert check_certificate(cert, traj, params, steps=steps).ok
+    halved = dataclasses.replace(cert, injected=cert.injected.at[:, 3].multiply(0.5))
+    assert "remainder input" in check_certificate(halved, traj, params, steps=steps).reason
+    shrunk = dataclasses.replace(cert, remainder=cert.remainder.at[:, 4].multiply(0.99))
+    assert "remainder bound" in check_certificate(shrunk, traj, params, steps=steps).reason
+    narrow = dataclasses.replace(cert, upper=cert.upper.at[5, 0, 1].add(-1e-12))
+    assert "does not hold" in check_certificate(narrow, traj, params, steps=steps).reason
+    moved = dataclasses.replace(cert, sens2=cert.sens2.at[1, 3, 0, 1, 0, 0].add(1e-3))
+    assert not check_certificate(moved, traj, params, steps=steps).ok
+    half_box = dataclasses.replace(cert, lo=cert.lo.at[0, 1].set(cert.lo[0, 1] + 1e-3))
+    assert not check_certificate(half_box, traj, params, steps=steps).ok
     with pytest.raises(ValueError, match="enclosure"):
-        certified_bounds(traj, params, enclosure="zonotope")
-    with pytest.raises(ValueError, match="propagate"):
-        certified_bounds(traj, params, propagate="nominal")
+        check_certificate(dataclasses.replace(cert, enclosure="zonotope"), traj, params)
+
+
+def test_checker_affine_forms_contain_the_exact_results():
+    """The checker's own affine forms (mpmath coefficients): every operation's result
+    holds the exact result at random points of its operands, and 1/x over a range that
+    holds 0 is refused."""
+    from rmijax.methods.certificate_check import _Form, _MpAffineBackend, _recip, _sqr, _Unbounded
+
+    iv = _iv()
+    rng = np.random.default_rng(1)
+    k = 3
+    backend = _MpAffineBackend(iv, k)
+
+    def form(c, a, e):
+        return _Form(iv.mpf(c), np.array([iv.mpf(float(v)) for v in a], dtype=object), iv.mpf(e))
+
+    def value(f, eps, extra):
+        linear = sum(float(ai.mid) * x for ai, x in zip(f.a, eps, strict=True))
+        return float(f.c.mid) + linear + float(f.e.b) * extra
+
+    ops = {
+        "mul": (lambda a, b: a * b, lambda a, b: a * b),
+        "sub": (lambda a, b: a - b, lambda a, b: a - b),
+        "recip": (lambda a, b: _recip(a), lambda a, b: 1 / a),
+        "sqr": (lambda a, b: _sqr(a), lambda a, b: a * a),
+        "sin": (lambda a, b: backend.sin(a), lambda a, b: np.sin(a)),
+        "cos": (lambda a, b: backend.cos(a), lambda a, b: np.cos(a)),
+        "div": (lambda a, b: b / a, lambda a, b: b / a),
+    }
+    worst = -np.inf
+    for trial in range(60):
+        centre = (3.0 + abs(rng.normal())) * (1.0 if trial % 2 else -1.0)  # away from 0
+        x = form(centre, rng.normal(size=k) * 0.3, abs(rng.normal()) * 0.1)
+        y = form(rng.normal(), rng.normal(size=k) * 0.3, abs(rng.normal()) * 0.1)
+        for make, exact in ops.values():
+            result = make(x, y)
+            for _ in range(10):
+                eps = rng.uniform(-1, 1, k)
+                ex, ey = rng.choice([-1.0, 1.0], 2)  # the error terms at their ends
+                target = exact(value(x, eps, ex), value(y, eps, ey))
+                gap = abs(target - value(result, eps, 0.0)) - float(result.e.b)
+                worst = max(worst, gap / max(1.0, abs(target)))
+    assert worst <= 1e-13
+    with pytest.raises(_Unbounded):
+        _recip(form(0.1, [0.2, 0.0, 0.0], 0.0))
+
+
+@pytest.mark.slow
+def test_checker_verifies_the_whole_carried_run(pendulum_affine):
+    traj, params, _, cert = pendulum_affine
+    result = check_certificate(cert, traj, params)
+    assert result.ok and result.steps == traj.n_steps
+
+
+@pytest.mark.slow
+def test_checker_on_the_two_joint_arm_affine_carried():
+    params = rmijax.paper_arm2()
+    traj = rmijax.trajectory(["hold", "sine"], duration=0.3)
+    options = dict(enclosure="affine", propagate="carried")
+    _, cert = certified_bounds(traj, params, **options)
+    pieces = [0, cert.n_pieces // 2]
+    assert check_certificate(cert, traj, params, steps=3, pieces=pieces).ok
+    _, mutant = certified_bounds(traj, params, remainder_scale=0.5, **options)
+    assert not check_certificate(mutant, traj, params, steps=3, pieces=pieces).ok
 
 
 @pytest.mark.slow
@@ -208,6 +304,7 @@ def test_four_links_contain_every_corner_and_draws():
     ratio = np.asarray(bounds.width)[10:] / reached[10:]
     assert np.all(ratio >= 1.0 - 1e-9)
     assert np.median(ratio) <= 1.5
+    assert check_certificate(cert, traj, params, steps=2, pieces=[40]).ok  # ~70 s
     with pytest.raises(rmijax.DivergedError):
         certified_bounds(traj, params, enclosure="interval", propagate="kernel")
 
@@ -337,9 +434,10 @@ def test_carried_with_noise_through_the_controller():
     traj = rmijax.trajectory(["sine"], duration=0.5)
     noise_lo, noise_hi = np.array([-1e-3, -2e-3]), np.array([1e-3, 2e-3])
     options = dict(splits=2, enclosure="affine", propagate="carried")
-    bounds, _ = certified_bounds(traj, params, noise_lo=noise_lo, noise_hi=noise_hi, **options)
+    bounds, cert = certified_bounds(traj, params, noise_lo=noise_lo, noise_hi=noise_hi, **options)
     clean, _ = certified_bounds(traj, params, **options)
     assert _noisy_escape(bounds, traj, params, noise_lo, noise_hi) <= TOL
+    assert check_certificate(cert, traj, params, steps=10).ok
     extra = np.asarray(bounds.width) - np.asarray(clean.width)
     assert np.all(extra >= (noise_hi - noise_lo)[None, None, :] - 1e-12)
 

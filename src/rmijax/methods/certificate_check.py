@@ -13,20 +13,32 @@ certificate but uses its numbers as the *claims* to verify:
    next Taylor model (the closed loop applied to the stored one, ``gv``'s jets
    at the centre) are enclosed, and the stored ``x_c(k+1), S_{k+1}, Q_{k+1}``
    differ from them by at most the rounding part; with the Lagrange remainder
-   of ``gv`` over the tube that ``r_k`` defines, the stored input bound ``w_k``
-   is at least the recomputed one;
-4. ``r_{k+1} >= sum_{j <= k} |A^(k-j)| w_j`` with the powers of ``A`` in
-   interval arithmetic (no truncation);
+   of ``gv`` over the tube that ``r_k`` defines (the Hessian enclosed by interval
+   jets, or for ``enclosure="affine"`` by affine jets whose coefficients are
+   ``mpmath`` intervals, :class:`_Form`), the stored input bound ``w_k`` is at least
+   the recomputed one;
+4. ``propagate="kernel"``: ``r_{k+1} >= sum_{j <= k} |A^(k-j)| w_j`` with the powers
+   of ``A`` in interval arithmetic (no truncation). ``propagate="carried"``: the
+   checker carries its own generators, ``R_k = G eps + sum_b d_b G^b eps``, through
+   its own centre loop ``A_c`` (a float inside its enclosure of the true one, the
+   rest ``|A_true - A_c| r_k`` added to the new generators), ``G^b`` picking up
+   ``dt e2 H_b G`` with ``H_b`` its own float midpoints; the products in interval
+   arithmetic, then rebased on floats with the radii moved into the new generators;
+   ``r_{k+1}`` must be at least ``|G| 1 + sum_b |d_b| |G^b| 1``. (``w_k`` then holds
+   the noise's first-order term, ``1/2 z' H z`` at the centre over the blocks that are
+   not carried and ``sum d_b d_c H_b R^c`` with the checker's generators.)
 5. the band ``[lower_k, upper_k]`` holds every piece's enclosure
    ``x_c + range(S d + 1/2 Q[d, d]) + [-r_k, r_k] + [V_lo, V_hi]``.
 
 Together these are the induction of :mod:`rmijax.methods.certified`, so a certificate
 that passes for steps ``0..K`` proves the band for those steps. It is slow
-(pure Python intervals: about a second per step and piece for two joints),
-meant for short runs. It shares with the certifier only the formula of the
+(pure Python intervals: with interval jets about a second per step and piece for two
+joints; with affine jets about 0.1 s for the pendulum, 1 s for two joints and 30 s for
+four), meant for short runs. It shares with the certifier only the formula of the
 perturbation (:func:`rmijax.methods.certified.planar_perturbation_jets`) and the
 jet's chain rule (:class:`rmijax._intervals.Jet`), both run here on
-``mpmath`` intervals.
+``mpmath`` intervals or :class:`_Form`; the affine arithmetic, the loop matrix and the
+generators are its own.
 
 Requires ``mpmath`` (the ``test`` extra).
 """
@@ -94,6 +106,182 @@ class _MpBackend:
 
     def point(self, value):
         return self.iv.mpf(float(value))
+
+
+class _Unbounded(ArithmeticError):
+    """An affine ``1/x`` over a range that holds 0."""
+
+
+class _Form:
+    """An affine form ``c + a . eps + e [-1, 1]`` with ``mpmath`` interval coefficients.
+
+    For every ``eps`` in ``[-1, 1]^K`` the value lies in the interval expression
+    ``c + sum_i a_i eps_i + [-e, e]`` (``c``, ``a_i``: intervals, ``e``: an interval
+    whose upper end bounds the error), so each operation below is sound by interval
+    arithmetic alone. The linearisations are the ones of :mod:`rmijax._affine`
+    (written again here, on ``mpmath``): products and squares bound the quadratic
+    part by the product of radii, ``1/x`` is the min-range linearisation, ``sin`` and
+    ``cos`` the first-order Taylor form with ``|f''| <= 1``. ``zero`` marks the exact
+    zero (most Hessian entries), which every operation short-cuts.
+    """
+
+    __slots__ = ("c", "a", "e", "zero")
+
+    def __init__(self, c, a, e, zero=False):
+        self.c, self.a, self.e, self.zero = c, a, e, zero
+
+    @staticmethod
+    def point(iv, value, k):
+        value = value if isinstance(value, iv.mpf) else iv.mpf(float(value))
+        return _Form(value, np.full(k, iv.mpf(0), dtype=object), iv.mpf(0))
+
+    @staticmethod
+    def nil(iv, k):
+        return _Form(iv.mpf(0), np.full(k, iv.mpf(0), dtype=object), iv.mpf(0), True)
+
+    def rad(self):
+        """Upper bound of ``|x - c|`` (a point interval)."""
+        total = self.e
+        for coefficient in self.a:
+            total = total + abs(coefficient)
+        return total.b
+
+    def interval(self):
+        r = self.rad()
+        return (self.c - r).a, (self.c + r).b
+
+    def _const(self, other):
+        """``other`` (a float or an ``mpmath`` interval) as an interval, or None for a form."""
+        if isinstance(other, _Form):
+            return None
+        if isinstance(other, np.ndarray):
+            return NotImplemented
+        return other if isinstance(other, _iv().mpf) else _iv().mpf(float(other))
+
+    def __add__(self, other):
+        k = self._const(other)
+        if k is NotImplemented:
+            return NotImplemented
+        if k is not None:
+            return _Form(self.c + k, self.a, self.e)
+        if self.zero:
+            return other
+        if other.zero:
+            return self
+        return _Form(self.c + other.c, self.a + other.a, self.e + other.e)
+
+    __radd__ = __add__
+
+    def __neg__(self):
+        if self.zero:
+            return self
+        return _Form(-self.c, -self.a, self.e)
+
+    def __sub__(self, other):
+        if isinstance(other, np.ndarray):
+            return NotImplemented
+        return self + (-other)
+
+    def __rsub__(self, other):
+        return (-self) + other
+
+    def __mul__(self, other):
+        k = self._const(other)
+        if k is NotImplemented:
+            return NotImplemented
+        if self.zero:
+            return self
+        if k is not None:
+            return _Form(self.c * k, self.a * k, self.e * abs(k).b)
+        if other.zero:
+            return other
+        e = abs(self.c).b * other.e + abs(other.c).b * self.e + self.rad() * other.rad()
+        return _Form(self.c * other.c, self.a * other.c + other.a * self.c, e)
+
+    __rmul__ = __mul__
+
+    def __truediv__(self, other):
+        k = self._const(other)
+        if k is None:
+            return self * _recip(other)
+        return self * (1 / k)
+
+    def __rtruediv__(self, other):
+        return _recip(self) * other
+
+
+def _recip(x):
+    """``1/x`` by the min-range linearisation ``alpha x + zeta``, ``zeta`` over ``x``'s range.
+
+    For a negative range ``1/x = -1/(-x) = alpha x - zeta(-x)``.
+    """
+    if x.zero:
+        raise _Unbounded("1/x of the exact zero")
+    lo, hi = x.interval()
+    sign = 1
+    if hi < 0:
+        sign, lo, hi = -1, -hi, -lo
+    elif not lo > 0:
+        raise _Unbounded("1/x over a range that holds 0")
+    iv = _iv()
+    alpha = -1.0 / float(hi) ** 2  # any exact slope is sound; this one is min-range
+    mag = iv.mpf(-alpha)
+    zeta_hi = max((1 / lo + mag * lo).b, (1 / hi + mag * hi).b)
+    zeta_lo = (2 * iv.sqrt(mag)).a  # 1/t + |alpha| t >= 2 sqrt(|alpha|) for every t > 0
+    mid = iv.mpf(float((zeta_lo + zeta_hi).a) / 2)
+    zeta_rad = max(abs(zeta_hi - mid).b, abs(mid - zeta_lo).b)
+    return _Form(x.c * alpha + mid * sign, x.a * alpha, mag * x.e + zeta_rad)
+
+
+def _sqr(x):
+    """``x^2 = c^2 + 2c (L + E) + (L + E)^2``, the last in ``[0, rad^2]``."""
+    if x.zero:
+        return x
+    r = x.rad()
+    half = r * r / 2
+    return _Form(x.c * x.c + half, x.a * (2 * x.c), 2 * abs(x.c).b * x.e + half)
+
+
+def _trig(x, fn, slope):
+    """``fn(c + d) = fn(c) + fn'(c) d + rho``, ``|rho| <= d^2 / 2``."""
+    r = x.rad()
+    s = slope(x.c)
+    return _Form(fn(x.c), x.a * s, abs(s).b * x.e + r * r / 2)
+
+
+class _MpAffineBackend:
+    """The operations :class:`rmijax._intervals.Jet` needs, on :class:`_Form` over ``k``
+    symbols."""
+
+    def __init__(self, iv, k):
+        self.iv, self.k = iv, k
+
+    def sin(self, x):
+        return _trig(x, self.iv.sin, self.iv.cos)
+
+    def cos(self, x):
+        return _trig(x, self.iv.cos, lambda t: -self.iv.sin(t))
+
+    def recip(self, x):
+        return _recip(x)
+
+    def sqr(self, x):
+        return _sqr(x)
+
+    def is_interval(self, x):
+        return isinstance(x, _Form)
+
+    def zeros(self, shape, like=None):
+        out = np.empty(shape, dtype=object)
+        for index in np.ndindex(shape):
+            out[index] = _Form.nil(self.iv, self.k)
+        return out
+
+    def outer(self, a, b):
+        return np.multiply.outer(a, b)
+
+    def point(self, value):
+        return _Form.point(self.iv, value, self.k)
 
 
 def _arr(iv, values):
@@ -196,22 +384,32 @@ def _tiling_error(cert, params):
 def check_certificate(cert, traj, params, *, steps: int | None = None, pieces=None) -> CheckResult:
     """Re-verify a certificate with outward-rounded ``mpmath`` interval arithmetic.
 
+    Every pair of ``enclosure`` (``"interval"``, ``"affine"``) and ``propagate``
+    (``"kernel"``, ``"carried"``) is verified: the Hessian over the tube by the same
+    kind of enclosure (interval jets, or affine jets on ``mpmath``), the remainder by
+    the kernel's sums or by generators that the checker carries itself.
+
     Args:
         cert: the :class:`~rmijax.methods.certified.Certificate` of
             :func:`rmijax.methods.certified.certified_bounds` for ``traj`` and ``params``.
         traj, params: the run and the robot it certifies.
         steps: verify the band at steps ``0..steps`` (default: the whole run; a
-            few dozen steps take a minute for two joints).
+            few dozen steps take a minute for two joints with interval jets; affine
+            jets are slower, a few seconds a step for one joint).
         pieces: indices of the pieces to verify (default: all).
 
     Returns:
         :class:`CheckResult`; ``ok`` is False with the first failed check in ``reason``.
+
+    Raises:
+        ValueError: a certificate whose ``enclosure`` or ``propagate`` is not one of
+            the above.
     """
-    if (cert.enclosure, cert.propagate) != ("interval", "kernel"):
-        raise NotImplementedError(
-            "check_certificate re-verifies certificates made with enclosure='interval' and "
-            f"propagate='kernel' only, got {cert.enclosure!r} and {cert.propagate!r}: the "
-            "affine enclosure and the carried generators have no independent checker yet"
+    if cert.enclosure not in ("interval", "affine") or cert.propagate not in ("kernel", "carried"):
+        raise ValueError(
+            "check_certificate: cert.enclosure must be 'interval' or 'affine' and "
+            f"cert.propagate 'kernel' or 'carried', got {cert.enclosure!r} and "
+            f"{cert.propagate!r}: pass the Certificate that certified_bounds returned"
         )
     iv = _iv()
     backend = _MpBackend(iv)
@@ -230,21 +428,22 @@ def check_certificate(cert, traj, params, *, steps: int | None = None, pieces=No
     noise_lo = np.asarray(cert.noise_lo, np.float64)
     noise_hi = np.asarray(cert.noise_hi, np.float64)
     noisy = bool(np.any(noise_lo != 0) or np.any(noise_hi != 0))
-    segments = int(cert.segments)
+    setup = dict(
+        dt=dt,
+        kp=kp,
+        kd=kd,
+        nominal=nominal,
+        noise_lo=noise_lo,
+        noise_hi=noise_hi,
+        noisy=noisy,
+        segments=int(cert.segments),
+        enclosure=cert.enclosure,
+        carried=cert.propagate == "carried",
+        n=n,
+        p=p,
+    )
     lower, upper = np.asarray(cert.lower, np.float64), np.asarray(cert.upper, np.float64)
-    # powers of every joint's A: A^m, m = 0..steps (interval matrices)
-    a_mat = [
-        np.array(
-            [[iv.mpf(1), iv.mpf(dt)], [-iv.mpf(kp[i]) * dt, 1 - iv.mpf(kd[i]) * dt]], dtype=object
-        )
-        for i in range(n)
-    ]
-    powers = [
-        [np.array([[iv.mpf(1), iv.mpf(0)], [iv.mpf(0), iv.mpf(1)]], dtype=object)] for _ in range(n)
-    ]
-    for i in range(n):
-        for _ in range(steps):
-            powers[i].append(a_mat[i].dot(powers[i][-1]))
+    powers = None if setup["carried"] else _powers(iv, kp, kd, dt, n, steps)
     chosen = range(cert.n_pieces) if pieces is None else pieces
     for piece in chosen:
         state = np.asarray(cert.state[piece], np.float64)
@@ -266,6 +465,11 @@ def check_certificate(cert, traj, params, *, steps: int | None = None, pieces=No
             return CheckResult(False, 0, f"piece {piece}: the model does not start at x_d(0)")
         if np.any(remainder < 0) or np.any(injected < 0):
             return CheckResult(False, 0, f"piece {piece}: a negative remainder bound")
+        if remainder[0].any():
+            return CheckResult(False, 0, f"piece {piece}: the remainder does not start at 0")
+        # carried: R_k = G eps + sum_b d_b G^b eps, the checker's own generators
+        gens = np.empty((2 * n, 0), dtype=object)
+        gens_d = np.empty((p, 2 * n, 0), dtype=object)
         for k in range(steps + 1):
             # 5. the band at step k
             for i in range(n):
@@ -286,51 +490,243 @@ def check_certificate(cert, traj, params, *, steps: int | None = None, pieces=No
                         )
             if k == steps:
                 break
-            # 4. the remainder bound of step k+1 from the inputs w_0..w_k
+            # 3. the inputs w_k
+            try:
+                reason, centre = _check_step(
+                    iv,
+                    backend,
+                    k,
+                    state,
+                    sens,
+                    sens2,
+                    injected,
+                    remainder,
+                    center,
+                    d_box,
+                    d_rad,
+                    u_all[k],
+                    gens_d,
+                    setup,
+                )
+            except _Unbounded as error:
+                reason = f"the affine Hessian is unbounded over the tube ({error})"
+            if reason:
+                return CheckResult(False, k, f"piece {piece}, step {k}: {reason}")
+            # 4. the remainder bound of step k+1
+            if setup["carried"]:
+                gens, gens_d, bound = _carry(
+                    iv, centre, gens, gens_d, injected[k], remainder[k], d_rad, setup
+                )
+            else:
+                bound = _kernel_bound(iv, powers, injected, k, n)
             for i in range(n):
                 for s in range(2):
-                    bound = iv.mpf(0)
-                    for j in range(k + 1):
-                        power = powers[i][k - j]
-                        bound = bound + _mag(power[s, 0]) * float(injected[j, i, 0])
-                        bound = bound + _mag(power[s, 1]) * float(injected[j, i, 1])
-                    if not bound.b <= remainder[k + 1, i, s]:
+                    if not bound[i][s].b <= remainder[k + 1, i, s]:
                         return CheckResult(
                             False,
                             k,
-                            f"piece {piece}, step {k + 1}: remainder bound "
-                            f"{remainder[k + 1, i, s]!r} "
-                            f"below sum |A^m| w = {bound}",
+                            f"piece {piece}, step {k + 1}, joint {i} sensor {s}: remainder "
+                            f"bound {remainder[k + 1, i, s]!r} below the recomputed "
+                            f"{bound[i][s]}",
                         )
-            # 3. the inputs w_k
-            reason = _check_step(
-                iv,
-                backend,
-                k,
-                state,
-                sens,
-                sens2,
-                injected,
-                remainder,
-                center,
-                th_box,
-                d_box,
-                d_rad,
-                u_all[k],
-                nominal,
-                kp,
-                kd,
-                dt,
-                noise_lo,
-                noise_hi,
-                noisy,
-                segments,
-                n,
-                p,
-            )
-            if reason:
-                return CheckResult(False, k, f"piece {piece}, step {k}: {reason}")
     return CheckResult(True, steps, "")
+
+
+def _powers(iv, kp, kd, dt, n, steps):
+    """Powers ``A_i^m``, ``m = 0..steps``, of every joint's PD loop (interval matrices)."""
+    powers = []
+    for i in range(n):
+        a_mat = np.array(
+            [[iv.mpf(1), iv.mpf(dt)], [-iv.mpf(kp[i]) * dt, 1 - iv.mpf(kd[i]) * dt]], dtype=object
+        )
+        joint = [np.array([[iv.mpf(1), iv.mpf(0)], [iv.mpf(0), iv.mpf(1)]], dtype=object)]
+        for _ in range(steps):
+            joint.append(a_mat.dot(joint[-1]))
+        powers.append(joint)
+    return powers
+
+
+def _kernel_bound(iv, powers, injected, k, n):
+    """``sum_{j <= k} |A^(k-j)| w_j`` per joint and sensor (no truncation)."""
+    out = []
+    for i in range(n):
+        row = []
+        for s in range(2):
+            bound = iv.mpf(0)
+            for j in range(k + 1):
+                power = powers[i][k - j]
+                bound = bound + _mag(power[s, 0]) * float(injected[j, i, 0])
+                bound = bound + _mag(power[s, 1]) * float(injected[j, i, 1])
+            row.append(bound)
+        out.append(row)
+    return out
+
+
+def _float_mid(x):
+    """A float inside the interval ``x`` (taken as an exact real)."""
+    return float(x.mid)
+
+
+def _loop_matrix(iv, centre, setup):
+    """The centre's linearised loop in ``R``: ``A_c`` (floats, taken as exact reals) and
+    ``|A_true - A_c|`` over the enclosure of ``gv_R``, both (2n, 2n) object arrays."""
+    n, p, dt = setup["n"], setup["p"], setup["dt"]
+    size = 2 * n
+    a_c = np.full((size, size), iv.mpf(0), dtype=object)
+    a_err = np.full((size, size), iv.mpf(0), dtype=object)
+    for i in range(n):
+        a_c[2 * i, 2 * i] = iv.mpf(1)
+        a_c[2 * i, 2 * i + 1] = iv.mpf(dt)  # q + dt qd: exact reals
+        for t in range(size):
+            true = centre[i].g[p + t] * dt
+            if t == 2 * i:
+                true = true - iv.mpf(setup["kp"][i]) * dt
+            elif t == 2 * i + 1:
+                true = true + (1 - iv.mpf(setup["kd"][i]) * dt)
+            mid = iv.mpf(_float_mid(true))
+            a_c[2 * i + 1, t] = mid
+            a_err[2 * i + 1, t] = abs(true - mid).b
+    return a_c, a_err
+
+
+def _mixed(iv, centre, setup):
+    """``H_b`` rows: the float midpoints of the centre's ``d``-``R`` Hessian block,
+    ``mixed[i][b][t]``."""
+    n, p = setup["n"], setup["p"]
+    return [
+        [[iv.mpf(_float_mid(centre[i].h[b, p + t])) for t in range(2 * n)] for b in range(p)]
+        for i in range(n)
+    ]
+
+
+def _carry(iv, centre, gens, gens_d, injected, remainder, d_rad, setup):
+    """One step of the checker's own generators: ``G <- A_c G``, ``G^b <- A_c G^b + dt
+    e2 H_b G`` (in interval arithmetic, then rebased on floats), and ``2n`` new ones:
+    ``w_k`` (the verified claim), ``|A_true - A_c| r_k`` and the rebased radii. Returns
+    the new generators and ``|R_(k+1)|``'s bound per joint and sensor."""
+    n, p, dt = setup["n"], setup["p"], setup["dt"]
+    size = 2 * n
+    a_c, a_err = _loop_matrix(iv, centre, setup)
+    mixed = _mixed(iv, centre, setup)
+    columns = gens.shape[1]
+    new = np.empty((size, columns + size), dtype=object)
+    new_d = np.empty((p, size, columns + size), dtype=object)
+    if columns:
+        new[:, :columns] = a_c.dot(gens)
+        for b in range(p):
+            new_d[b, :, :columns] = a_c.dot(gens_d[b])
+            for i in range(n):
+                pushed = sum(
+                    (gens[t] * mixed[i][b][t] for t in range(size)),
+                    start=np.full(columns, iv.mpf(0), dtype=object),
+                )
+                new_d[b, 2 * i + 1, :columns] = new_d[b, 2 * i + 1, :columns] + pushed * dt
+    # rebase: the carried generators become floats (exact reals), their intervals'
+    # radii go into the new generators, so interval widths do not compound over steps
+    slack = [iv.mpf(0)] * size
+    for r in range(size):
+        for j in range(columns):
+            mid = iv.mpf(_float_mid(new[r, j]))
+            slack[r] = slack[r] + abs(new[r, j] - mid).b
+            new[r, j] = mid
+            for b in range(p):
+                mid = iv.mpf(_float_mid(new_d[b, r, j]))
+                slack[r] = slack[r] + abs(new_d[b, r, j] - mid).b * d_rad[b]
+                new_d[b, r, j] = mid
+    r_flat = [float(v) for v in remainder.reshape(-1)]
+    w_flat = [float(v) for v in injected.reshape(-1)]
+    new[:, columns:] = iv.mpf(0)
+    new_d[:, :, columns:] = iv.mpf(0)
+    for r in range(size):
+        box = iv.mpf(w_flat[r]) + slack[r]
+        for t in range(size):
+            box = box + a_err[r, t] * r_flat[t]
+        new[r, columns + r] = box
+    bound = []
+    for i in range(n):
+        row = []
+        for s in range(2):
+            r = 2 * i + s
+            total = iv.mpf(0)
+            for value in new[r]:
+                total = total + abs(value)
+            for b in range(p):
+                part = iv.mpf(0)
+                for value in new_d[b, r]:
+                    part = part + abs(value)
+                total = total + part * d_rad[b]
+            row.append(total)
+        bound.append(row)
+    return new, new_d, bound
+
+
+def _affine_hessians(iv, xc, s1, s2, center, d_rad, rhat, eta_hat, s_hi, consts, setup):
+    """``gv``'s Hessians in ``z = (d, R[, eta])`` over the box ``s_hi Z``, enclosed by
+    affine jets on ``mpmath`` (one symbol per variable): per joint an (m, m) object array
+    of intervals. The state is ``x_c + S d + R`` exact in the symbols (``1/2 Q[d, d]`` in
+    the error term), its ``d``-gradient ``S + Q d``."""
+    n, p, noisy = setup["n"], setup["p"], setup["noisy"]
+    m = p + 2 * n + (2 * n if noisy else 0)
+    backend = _MpAffineBackend(iv, m)
+    radii = list(d_rad) + list(rhat) + (list(eta_hat) if noisy else [])
+    rho = [(iv.mpf(r) * s_hi).b for r in radii]  # each symbol's exact radius, rounded up
+
+    def form(c, coefficients, e=None):
+        a = np.full(m, iv.mpf(0), dtype=object)
+        for index, value in coefficients.items():
+            a[index] = value
+        c = c if isinstance(c, iv.mpf) else iv.mpf(float(c))
+        return _Form(c, a, iv.mpf(0) if e is None else e)
+
+    def unit(index):
+        g = backend.zeros((m,))
+        g[index] = backend.point(1.0)
+        return g
+
+    q, qd = [], []
+    for i in range(n):
+        for s, target in ((0, q), (1, qd)):
+            col = p + 2 * i + s
+            quad = iv.mpf(0)
+            for b in range(p):
+                for c in range(p):
+                    quad = quad + abs(s2[i, s][b, c]) * (rho[b] * rho[c])
+            coefficients = {b: s1[i, s][b] * rho[b] for b in range(p)}
+            coefficients[col] = rho[col]
+            value = form(xc[i, s], coefficients, (quad / 2).b)
+            grad = unit(col)
+            for b in range(p):
+                grad[b] = form(s1[i, s][b], {c: s2[i, s][b, c] * rho[c] for c in range(p)})
+            hess = backend.zeros((m, m))
+            for b in range(p):
+                for c in range(p):
+                    hess[b, c] = backend.point(s2[i, s][b, c])
+            target.append(Jet(value, grad, hess, backend))
+    th = [
+        Jet(form(center[b], {b: rho[b]}), unit(b), backend.zeros((m, m)), backend) for b in range(p)
+    ]
+    noise = None
+    if noisy:
+        eq, eqd = [], []
+        for i in range(n):
+            for s, target in ((0, eq), (1, eqd)):
+                col = p + 2 * n + 2 * i + s
+                target.append(
+                    Jet(form(iv.mpf(0), {col: rho[col]}), unit(col), backend.zeros((m, m)), backend)
+                )
+        noise = (eq, eqd)
+    gv = planar_perturbation_jets(
+        q, qd, th, consts["nominal"], consts["u"], consts["kp"], consts["kd"], noise
+    )
+    out = []
+    for jet in gv:
+        h = np.empty((m, m), dtype=object)
+        for a in range(m):
+            for b in range(m):
+                lo, hi = jet.h[a, b].interval()
+                h[a, b] = iv.mpf([lo.a, hi.b])
+        out.append(h)
+    return out
 
 
 def _check_step(
@@ -343,23 +739,19 @@ def _check_step(
     injected,
     remainder,
     center,
-    th_box,
     d_box,
     d_rad,
     u,
-    nominal,
-    kp,
-    kd,
-    dt,
-    noise_lo,
-    noise_hi,
-    noisy,
-    segments,
-    n,
-    p,
+    gens_d,
+    setup,
 ):
+    """Verify ``w_k`` (``injected[k]``); returns ``(reason, centre jets)``."""
+    n, p, dt = setup["n"], setup["p"], setup["dt"]
+    kp, kd, noisy, carried = setup["kp"], setup["kd"], setup["noisy"], setup["carried"]
+    noise_lo, noise_hi = setup["noise_lo"], setup["noise_hi"]
+    segments = setup["segments"]
     consts = dict(
-        nominal=nominal,
+        nominal=setup["nominal"],
         u=[iv.mpf(float(v)) for v in u],
         kp=[iv.mpf(v) for v in kp],
         kd=[iv.mpf(v) for v in kd],
@@ -374,7 +766,8 @@ def _check_step(
         max(abs(a), abs(b)) for a, b in zip(noise_lo.reshape(-1), noise_hi.reshape(-1), strict=True)
     ]
     v_hat = list(d_rad) + rhat + (eta_hat if noisy else [])
-    # the Lagrange remainder: Hessians over the nested boxes (j / J) Z
+    # the Lagrange remainder: Hessians over the nested boxes (j / J) Z, their spread
+    # about the centre's (the d-d block only with the kernel, every block when carried)
     spread = [np.full((m, m), zero, dtype=object) for _ in range(n)]
     noise_box = np.array(
         [
@@ -390,44 +783,72 @@ def _check_step(
         s_hi = iv.mpf(j + 1) / segments
         s_lo = iv.mpf(j) / segments
         weight = (s_hi - s_lo) - (s_hi**2 - s_lo**2) / 2
-        sd = d_box * s_hi
-        tube = np.empty((n, 2), dtype=object)
-        grad_d = np.empty((n, 2, p), dtype=object)
+        if setup["enclosure"] == "affine":
+            hessians = _affine_hessians(
+                iv, xc, s1, s2, center, d_rad, rhat, eta_hat, s_hi, consts, setup
+            )
+        else:
+            sd = d_box * s_hi
+            tube = np.empty((n, 2), dtype=object)
+            grad_d = np.empty((n, 2, p), dtype=object)
+            for i in range(n):
+                for s in range(2):
+                    tube[i, s] = (
+                        xc[i, s]
+                        + _poly_range(iv, s1[i, s], s2[i, s], sd)
+                        + iv.mpf([-rhat[2 * i + s], rhat[2 * i + s]]) * s_hi
+                    )
+                    grad_d[i, s] = s1[i, s] + s2[i, s].dot(sd)
+            th = _arr(iv, center) + sd
+            box = _evaluate(
+                backend,
+                iv,
+                tube,
+                grad_d,
+                s2,
+                th,
+                noise_box * s_hi if noisy else None,
+                consts,
+                p,
+                n,
+                noisy,
+            )
+            hessians = [jet.h for jet in box]
         for i in range(n):
-            for s in range(2):
-                tube[i, s] = (
-                    xc[i, s]
-                    + _poly_range(iv, s1[i, s], s2[i, s], sd)
-                    + iv.mpf([-rhat[2 * i + s], rhat[2 * i + s]]) * s_hi
-                )
-                grad_d[i, s] = s1[i, s] + s2[i, s].dot(sd)
-        th = _arr(iv, center) + sd
-        box = _evaluate(
-            backend,
-            iv,
-            tube,
-            grad_d,
-            s2,
-            th,
-            noise_box * s_hi if noisy else None,
-            consts,
-            p,
-            n,
-            noisy,
-        )
-        for i in range(n):
-            diff = box[i].h.copy()
-            diff[:p, :p] = diff[:p, :p] - centre[i].h[:p, :p]
+            diff = hessians[i].copy()
+            if carried:
+                diff = diff - centre[i].h
+            else:
+                diff[:p, :p] = diff[:p, :p] - centre[i].h[:p, :p]
             for a in range(m):
                 for b in range(m):
                     spread[i][a, b] = spread[i][a, b] + iv.mpf(_mag(diff[a, b])) * weight
+    mixed = _mixed(iv, centre, setup) if carried else None
     for i in range(n):
         w = iv.mpf(0)
-        for a in range(p, m):
+        for a in range(p + 2 * n if carried else p, m):  # carried: R's linear part is in A_c
             w = w + iv.mpf(_mag(centre[i].g[a])) * v_hat[a]
         for a in range(m):
             for b in range(m):
                 w = w + spread[i][a, b] * (iv.mpf(v_hat[a]) * v_hat[b])
+        if carried:
+            # 1/2 z' mid(H(0)) z over the blocks that are not carried (R-R, the noise's)
+            for a in range(m):
+                for b in range(m):
+                    if a < p + 2 * n and b < p + 2 * n and (a < p or b < p):
+                        continue
+                    mid = iv.mpf(_float_mid(centre[i].h[a, b]))
+                    w = w + abs(mid) * (iv.mpf(v_hat[a]) * v_hat[b]) / 2
+            # sum_(b, c) d_b d_c H_b R^c, with R^c = G^c eps the checker's generators
+            for b in range(p):
+                for c in range(p):
+                    through = iv.mpf(0)
+                    for col in range(gens_d.shape[-1]):
+                        entry = iv.mpf(0)
+                        for t in range(2 * n):
+                            entry = entry + mixed[i][b][t] * gens_d[c, t, col]
+                        through = through + abs(entry)
+                    w = w + through * (iv.mpf(d_rad[b]) * d_rad[c])
         # the next model against the exact coefficients c0, c1, c2
         q, qd = xc[i, 0], xc[i, 1]
         c0 = (q + qd * dt, qd + ((consts["u"][i] - qd * kd[i] - q * kp[i]) + centre[i].v) * dt)
@@ -447,6 +868,7 @@ def _check_step(
             if not need.b <= injected[k, i, s]:
                 return (
                     f"joint {i} sensor {s}: the remainder input {injected[k, i, s]!r} is below "
-                    f"the recomputed bound {need}"
+                    f"the recomputed bound {need}",
+                    centre,
                 )
-    return ""
+    return "", centre

@@ -38,15 +38,16 @@ induction in which every step's ``w_k`` is computed over the tube that
 ``r_k`` and the noise bounds, rounded outward.
 
 That is ``enclosure="interval"``, ``propagate="kernel"``, the default up to two
-joints and the pair :func:`rmijax.methods.certificate_check.check_certificate`
-re-verifies. From three joints the default is ``enclosure="affine"`` (the Hessian over
+joints. From three joints the default is ``enclosure="affine"`` (the Hessian over
 the tube on affine forms with rounding bounded, :mod:`rmijax._affine`, one symbol per
 variable of ``(d, R, eta)``, the state ``x_c + S d + R`` exact in them) and
 ``propagate="carried"``: ``R = G eps + sum_b d_b G^b eps`` through each piece's own
 linearised loop ``A_c`` (``G^b`` picks up ``dt e2 H_b G``, the mass error acting on the
 loop's gain), ``2n`` new generators a step sized by the bounded input and the products'
 rounding (:func:`_carried_terms`, :func:`_carry_generators`). Tighter, and bounded at
-four joints where the kernel diverges; no independent checker yet.
+four joints where the kernel diverges. :func:`rmijax.methods.certificate_check.check_certificate`
+re-verifies every pair on short runs (its own affine arithmetic and generators on
+``mpmath``).
 
 Supported models: the planar point-mass arm (:func:`rmijax.planar_arm`,
 :func:`rmijax.preset_arm`, ...), whose ``M`` and ``h`` the interval jets
@@ -291,8 +292,8 @@ class Certificate:
         enclosure: ``"interval"`` or ``"affine"``: how the Hessian over the tube was
             enclosed (static).
         propagate: ``"kernel"`` (``remainder`` from ``injected`` through ``kernel``
-            and ``tail``) or ``"carried"`` (through the pieces' own loops, generators
-            not stored: :func:`check_certificate` re-verifies ``"kernel"`` only) (static).
+            and ``tail``) or ``"carried"`` (through the pieces' own loops; the
+            generators are not stored: :func:`check_certificate` carries its own) (static).
     """
 
     center: jax.Array
@@ -1019,7 +1020,7 @@ def certified_bounds(
             through each piece's own linearised loop, the parameters' effect on that
             loop a coefficient: bounded at four joints where ``"kernel"`` diverges).
             None: kernel up to two joints, carried above. The certificate checker
-            re-verifies ``"kernel"`` and ``"interval"`` certificates only.
+            re-verifies every pair.
 
     Returns:
         ``(bounds, certificate)``: :class:`~rmijax.methods.base.Bounds` with
