@@ -427,6 +427,36 @@ def certified_table():
     return _table(header, rows)
 
 
+def checker_table():
+    """The independent checker on each enclosure/propagate pair (``--checker``)."""
+    data = _load("certified_checker_cpu.json")
+    rows = []
+    for r in data["runs"]:
+        rows.append(
+            (
+                f"`{r['case']}`",
+                f"{r['duration']} s",
+                f"{r['enclosure']} / {r['propagate']}",
+                f"{r['pieces_checked']} of {r['pieces']}",
+                r["steps_checked"],
+                "yes" if r["accepted"] else f"no ({r['reason']})",
+                "yes" if r["halved_rejected"] else "no",
+                f"{r['seconds_per_step_piece']:.3f}",
+            )
+        )
+    header = (
+        "case",
+        "run",
+        "enclosure / remainder",
+        "pieces checked",
+        "steps checked",
+        "accepted",
+        "halved remainder rejected",
+        "s per step and piece",
+    )
+    return _table(header, rows)
+
+
 def _load_avg(meta):
     load = meta.get("load_avg", meta.get("load_average_after"))
     return ", ".join(f"{x:.2f}" for x in load) if load else "not recorded"
@@ -525,7 +555,11 @@ BLOCKS = {
         "monitor": monitor_table,
         "real-arms": real_arm_table,
     },
-    "docs/methods.md": {"methods-cost": methods_cost, "certified": certified_table},
+    "docs/methods.md": {
+        "methods-cost": methods_cost,
+        "certified": certified_table,
+        "certified-checker": checker_table,
+    },
     "notebooks/method_comparison_conclusions.md": {
         "comparison": comparison_full,
         "agreement": agreement_table,
