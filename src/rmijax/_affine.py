@@ -33,7 +33,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from rmijax._intervals import Jet, down, jet_branches, replay, up
+from rmijax._intervals import Jet, PackedHessians, down, jet_branches, replay, up
 
 __all__ = ["AffineForm", "AffineBackend", "run_affine_tape"]
 
@@ -280,7 +280,9 @@ def run_affine_tape(tape_arrays, leaves, outputs):
     value, grad, hess = leaves
     m, k = grad.c.shape[1], value.n_symbols
     dtype = value.c.dtype
-    backend = AffineBackend(k)
+    backend = PackedHessians(m, AffineBackend(k))  # the upper triangles only
+    size = backend.size
+    hess = AffineForm(backend.pack(hess.c), backend.pack(hess.a), backend.pack(hess.e))
 
     def jet(row):
         return Jet(AffineForm(*row[0:3]), AffineForm(*row[3:6]), AffineForm(*row[6:9]), backend)
@@ -292,9 +294,10 @@ def run_affine_tape(tape_arrays, leaves, outputs):
         zero = jnp.zeros((), dtype)
         rows = (lit, jnp.zeros((k,), dtype), zero)
         rows += (jnp.zeros((m,), dtype), jnp.zeros((m, k), dtype), jnp.zeros((m,), dtype))
-        rows += (jnp.zeros((m, m), dtype), jnp.zeros((m, m, k), dtype))
-        return rows + (jnp.zeros((m, m), dtype),)
+        rows += (jnp.zeros((size,), dtype), jnp.zeros((size, k), dtype))
+        return rows + (jnp.zeros((size,), dtype),)
 
-    flat_leaves = [leaf for part in leaves for leaf in (part.c, part.a, part.e)]
+    flat_leaves = [leaf for part in (value, grad, hess) for leaf in (part.c, part.a, part.e)]
     out = replay(tape_arrays, flat_leaves, jet_branches(jet, flat, const), outputs)
-    return AffineForm(*out[0:3]), AffineForm(*out[3:6]), AffineForm(*out[6:9])
+    h = AffineForm(*(backend.unpack(x) for x in out[6:9]))
+    return AffineForm(*out[0:3]), AffineForm(*out[3:6]), h

@@ -450,6 +450,46 @@ def replay(tape_arrays, leaves, branches, outputs):
     return tuple(buf[rows] for buf in buffers)
 
 
+class PackedHessians:
+    """The Hessian rows of a tape replay stored packed: the upper triangle, ``m (m + 1) / 2``
+    entries instead of ``m^2``.
+
+    Every jet operation acts on Hessians entrywise or through ``outer(a, b) + outer(b,
+    a)``, ``outer(a, a)``, whose ``(i, j)`` and ``(j, i)`` entries are the same float
+    operations in swapped order (commutative, so equal): the upper triangle alone
+    carries the whole Hessian, in about half the work and memory. (Measured against the
+    full replay: the certified bands of the two-joint arm, the affine pendulum and
+    ``preset_arm(4)`` equal to the bit; the noisy pendulum's within an ulp, where XLA
+    fused the arithmetic differently; both are rounded outward as bounded.)
+    """
+
+    def __init__(self, m, backend):
+        self.m, self.base = m, backend
+        self.rows, self.cols = (np.asarray(i, np.int32) for i in np.triu_indices(m))
+        full = np.zeros((m, m), np.int32)
+        full[self.rows, self.cols] = np.arange(self.rows.size)
+        full[self.cols, self.rows] = np.arange(self.rows.size)
+        self.full = full
+
+    @property
+    def size(self):
+        return self.rows.size
+
+    def pack(self, x):
+        """``(L, m, m, ...)`` -> ``(L, P, ...)``."""
+        return x[:, self.rows, self.cols]
+
+    def unpack(self, x):
+        """``(L, P, ...)`` -> ``(L, m, m, ...)``."""
+        return x[:, self.full]
+
+    def __getattr__(self, name):  # everything but outer is the base backend's
+        return getattr(self.base, name)
+
+    def outer(self, a, b):
+        return a[self.rows] * b[self.cols]
+
+
 def run_tape(tape_arrays, leaves, outputs):
     """Replay a tape on interval jets.
 
@@ -463,11 +503,12 @@ def run_tape(tape_arrays, leaves, outputs):
     """
     m = leaves[2].shape[1]
     dtype = leaves[0].dtype
+    packed = PackedHessians(m, JAX_BACKEND)
     zero_g = jnp.zeros((m,), dtype)
-    zero_h = jnp.zeros((m, m), dtype)
+    zero_h = jnp.zeros((packed.size,), dtype)
 
     def jet(a):
-        return Jet(Interval(a[0], a[1]), Interval(a[2], a[3]), Interval(a[4], a[5]), JAX_BACKEND)
+        return Jet(Interval(a[0], a[1]), Interval(a[2], a[3]), Interval(a[4], a[5]), packed)
 
     def flat(j):
         return (j.v.lo, j.v.hi, j.g.lo, j.g.hi, j.h.lo, j.h.hi)
@@ -475,5 +516,7 @@ def run_tape(tape_arrays, leaves, outputs):
     def const(lit):
         return (lit, lit, zero_g, zero_g, zero_h, zero_h)
 
+    leaves = tuple(leaves[:4]) + tuple(packed.pack(h) for h in leaves[4:])
     out = replay(tape_arrays, leaves, jet_branches(jet, flat, const), outputs)
-    return Interval(out[0], out[1]), Interval(out[2], out[3]), Interval(out[4], out[5])
+    hess = Interval(packed.unpack(out[4]), packed.unpack(out[5]))
+    return Interval(out[0], out[1]), Interval(out[2], out[3]), hess
