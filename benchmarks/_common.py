@@ -66,7 +66,8 @@ def run_meta(script, argv=None, *, dtype):
 
     ``command`` is the exact command line that wrote the file (run from the repository
     root); ``commit`` the git HEAD of the code that ran, with ``+dirty`` when the work
-    tree had uncommitted changes to tracked files (listed in ``uncommitted_changes``);
+    tree had uncommitted changes to tracked files other than ``benchmarks/results/``
+    (listed in ``uncommitted_changes``);
     ``load_avg`` the machine's load when the run ended.
     """
     import jax
@@ -85,6 +86,9 @@ def run_meta(script, argv=None, *, dtype):
             check=True,
         ).stdout
         changed = [line[3:] for line in dirty.splitlines() if line.strip()]
+        # results files are what benchmarks write (a run that writes after every case
+        # sees its own earlier output): they do not make the code that ran dirty
+        changed = [path for path in changed if not path.startswith("benchmarks/results/")]
         commit += "+dirty" if changed else ""
     except (OSError, subprocess.CalledProcessError):
         commit, changed = "unknown", []

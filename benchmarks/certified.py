@@ -480,6 +480,7 @@ def main(argv=None):
         except DivergedError as err:  # the bound blew up: record where, and go on
             seconds = round(time.perf_counter() - started, 2)
             row = dict(case=name, diverged=str(err), seconds=seconds)
+            row |= {key: value for key, value in options.items() if value is not None}
             rows.append(row)
             print(f"{name:26} diverged after {row['seconds']} s: {err}", flush=True)
             if args.json:
