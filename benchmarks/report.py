@@ -374,6 +374,7 @@ CERTIFIED_FILES = (
     "certified_presets_cpu.json",
     "certified_preset6_cpu.json",
     "certified_preset4_affine_cpu.json",
+    "certified_preset4_affine_seg1_cpu.json",
 )
 """Results of ``benchmarks/certified.py``, in the order the table lists them."""
 
@@ -387,8 +388,10 @@ def certified_table():
         for r in data["rows"]:
             if "diverged" in r:
                 step = r["diverged"].split("(step ")[1].split(",")[0]
+                pair = f"{r.get('enclosure', 'interval')} / {r.get('propagate', 'kernel')}"
+                pair += f", {r['segments']} segment" if r.get("segments", 3) != 3 else ""
                 rows.append(
-                    (f"`{r['case']}`", f"{duration} s", "interval / kernel")
+                    (f"`{r['case']}`", f"{duration} s", pair)
                     + (f"diverged at step {step}",)
                     + ("-",) * 5
                     + (f"{r['seconds']:.1f}", "-")
