@@ -461,6 +461,16 @@ def check_certificate(cert, traj, params, *, steps: int | None = None, pieces=No
         )
         d_box = th_box - _arr(iv, center)
         d_rad = [_mag(d) for d in d_box]
+        data = dict(
+            state=state,
+            sens=sens,
+            sens2=sens2,
+            injected=injected,
+            remainder=remainder,
+            center=center,
+            d_box=d_box,
+            d_rad=d_rad,
+        )
         if not (np.array_equal(state[0], x0) and not sens[0].any() and not sens2[0].any()):
             return CheckResult(False, 0, f"piece {piece}: the model does not start at x_d(0)")
         if np.any(remainder < 0) or np.any(injected < 0):
@@ -492,22 +502,7 @@ def check_certificate(cert, traj, params, *, steps: int | None = None, pieces=No
                 break
             # 3. the inputs w_k
             try:
-                reason, centre = _check_step(
-                    iv,
-                    backend,
-                    k,
-                    state,
-                    sens,
-                    sens2,
-                    injected,
-                    remainder,
-                    center,
-                    d_box,
-                    d_rad,
-                    u_all[k],
-                    gens_d,
-                    setup,
-                )
+                reason, centre = _check_step(iv, backend, k, data, u_all[k], gens_d, setup)
             except _Unbounded as error:
                 reason = f"the affine Hessian is unbounded over the tube ({error})"
             if reason:
@@ -729,23 +724,12 @@ def _affine_hessians(iv, xc, s1, s2, center, d_rad, rhat, eta_hat, s_hi, consts,
     return out
 
 
-def _check_step(
-    iv,
-    backend,
-    k,
-    state,
-    sens,
-    sens2,
-    injected,
-    remainder,
-    center,
-    d_box,
-    d_rad,
-    u,
-    gens_d,
-    setup,
-):
-    """Verify ``w_k`` (``injected[k]``); returns ``(reason, centre jets)``."""
+def _check_step(iv, backend, k, data, u, gens_d, setup):
+    """Verify ``w_k`` (``injected[k]``) of one piece (``data``: its certificate arrays,
+    ``d_box`` and ``d_rad``); returns ``(reason, centre jets)``."""
+    state, sens, sens2 = data["state"], data["sens"], data["sens2"]
+    injected, remainder, center = data["injected"], data["remainder"], data["center"]
+    d_box, d_rad = data["d_box"], data["d_rad"]
     n, p, dt = setup["n"], setup["p"], setup["dt"]
     kp, kd, noisy, carried = setup["kp"], setup["kd"], setup["noisy"], setup["carried"]
     noise_lo, noise_hi = setup["noise_lo"], setup["noise_hi"]
