@@ -464,7 +464,7 @@ class PackedHessians:
     """
 
     def __init__(self, m, backend):
-        self.m, self.base = m, backend
+        self.base = backend
         self.rows, self.cols = (np.asarray(i, np.int32) for i in np.triu_indices(m))
         full = np.zeros((m, m), np.int32)
         full[self.rows, self.cols] = np.arange(self.rows.size)

@@ -105,7 +105,7 @@ class _MpBackend:
         return np.multiply.outer(a, b)
 
     def point(self, value):
-        return self.iv.mpf(float(value))
+        return value if isinstance(value, self.iv.mpf) else self.iv.mpf(float(value))
 
 
 class _Unbounded(ArithmeticError):
@@ -202,6 +202,8 @@ class _Form:
 
     def __truediv__(self, other):
         k = self._const(other)
+        if k is NotImplemented:
+            return NotImplemented
         if k is None:
             return self * _recip(other)
         return self * (1 / k)
@@ -297,36 +299,38 @@ def _mag(x):
     return abs(x).b
 
 
-def _jets(backend, values, grads, hessians):
-    return [Jet(values[i], grads[i], hessians[i], backend) for i in range(len(values))]
+def _evaluate(backend, state, grad_d, sens2, th, noise, consts, p, n, noisy):
+    """``gv`` jets (lists) in the variables (d, R[, eta]).
 
-
-def _evaluate(backend, iv, state, grad_d, sens2, th, noise, consts, p, n, noisy):
-    """``gv`` jets (lists) in the variables (d, R[, eta]); state etc. object arrays."""
+    ``state`` (n, 2), ``grad_d`` (n, 2, p), ``th`` (p,), ``noise`` (n, 2) or None: object
+    arrays of the backend's values (``mpmath`` intervals, or :class:`_Form`);
+    ``sens2`` (n, 2, p, p) intervals, the state's second derivative in ``d``.
+    """
     m = p + 2 * n + (2 * n if noisy else 0)
-    zero, one = iv.mpf(0), iv.mpf(1)
+
+    def unit(index):
+        grad = backend.zeros((m,))
+        grad[index] = backend.point(1.0)
+        return grad
+
     q, qd = [], []
     for i in range(n):
         for s, target in ((0, q), (1, qd)):
-            grad = np.full(m, zero, dtype=object)
+            grad = unit(p + 2 * i + s)
             grad[:p] = grad_d[i, s]
-            grad[p + 2 * i + s] = one
-            hess = np.full((m, m), zero, dtype=object)
-            hess[:p, :p] = sens2[i, s]
+            hess = backend.zeros((m, m))
+            for b in range(p):
+                for c in range(p):
+                    hess[b, c] = backend.point(sens2[i, s][b, c])
             target.append(Jet(state[i, s], grad, hess, backend))
-    th_jets = []
-    for b in range(p):
-        grad = np.full(m, zero, dtype=object)
-        grad[b] = one
-        th_jets.append(Jet(th[b], grad, np.full((m, m), zero, dtype=object), backend))
+    th_jets = [Jet(th[b], unit(b), backend.zeros((m, m)), backend) for b in range(p)]
     noise_jets = None
     if noisy:
         eq, eqd = [], []
         for i in range(n):
             for s, target in ((0, eq), (1, eqd)):
-                grad = np.full(m, zero, dtype=object)
-                grad[p + 2 * n + 2 * i + s] = one
-                target.append(Jet(noise[i, s], grad, np.full((m, m), zero, dtype=object), backend))
+                col = p + 2 * n + 2 * i + s
+                target.append(Jet(noise[i, s], unit(col), backend.zeros((m, m)), backend))
         noise_jets = (eq, eqd)
     return planar_perturbation_jets(
         q, qd, th_jets, consts["nominal"], consts["u"], consts["kp"], consts["kd"], noise_jets
@@ -446,12 +450,12 @@ def check_certificate(cert, traj, params, *, steps: int | None = None, pieces=No
     powers = None if setup["carried"] else _powers(iv, kp, kd, dt, n, steps)
     chosen = range(cert.n_pieces) if pieces is None else pieces
     for piece in chosen:
-        state = np.asarray(cert.state[piece], np.float64)
-        sens = np.asarray(cert.sens[piece], np.float64)
-        sens2 = np.asarray(cert.sens2[piece], np.float64)
-        injected = np.asarray(cert.injected[piece], np.float64)
-        remainder = np.asarray(cert.remainder[piece], np.float64)
-        center = np.asarray(cert.center[piece], np.float64)
+        data = {
+            key: np.asarray(getattr(cert, key)[piece], np.float64)
+            for key in ("state", "sens", "sens2", "injected", "remainder", "center")
+        }
+        state, sens, sens2 = data["state"], data["sens"], data["sens2"]
+        injected, remainder, center = data["injected"], data["remainder"], data["center"]
         th_box = np.array(
             [
                 iv.mpf([float(a), float(b)])
@@ -461,16 +465,7 @@ def check_certificate(cert, traj, params, *, steps: int | None = None, pieces=No
         )
         d_box = th_box - _arr(iv, center)
         d_rad = [_mag(d) for d in d_box]
-        data = dict(
-            state=state,
-            sens=sens,
-            sens2=sens2,
-            injected=injected,
-            remainder=remainder,
-            center=center,
-            d_box=d_box,
-            d_rad=d_rad,
-        )
+        data |= dict(d_box=d_box, d_rad=d_rad)
         if not (np.array_equal(state[0], x0) and not sens[0].any() and not sens2[0].any()):
             return CheckResult(False, 0, f"piece {piece}: the model does not start at x_d(0)")
         if np.any(remainder < 0) or np.any(injected < 0):
@@ -673,14 +668,10 @@ def _affine_hessians(iv, xc, s1, s2, center, d_rad, rhat, eta_hat, s_hi, consts,
         c = c if isinstance(c, iv.mpf) else iv.mpf(float(c))
         return _Form(c, a, iv.mpf(0) if e is None else e)
 
-    def unit(index):
-        g = backend.zeros((m,))
-        g[index] = backend.point(1.0)
-        return g
-
-    q, qd = [], []
+    state = np.empty((n, 2), dtype=object)
+    grad_d = np.empty((n, 2, p), dtype=object)
     for i in range(n):
-        for s, target in ((0, q), (1, qd)):
+        for s in range(2):
             col = p + 2 * i + s
             quad = iv.mpf(0)
             for b in range(p):
@@ -688,31 +679,18 @@ def _affine_hessians(iv, xc, s1, s2, center, d_rad, rhat, eta_hat, s_hi, consts,
                     quad = quad + abs(s2[i, s][b, c]) * (rho[b] * rho[c])
             coefficients = {b: s1[i, s][b] * rho[b] for b in range(p)}
             coefficients[col] = rho[col]
-            value = form(xc[i, s], coefficients, (quad / 2).b)
-            grad = unit(col)
+            state[i, s] = form(xc[i, s], coefficients, (quad / 2).b)
             for b in range(p):
-                grad[b] = form(s1[i, s][b], {c: s2[i, s][b, c] * rho[c] for c in range(p)})
-            hess = backend.zeros((m, m))
-            for b in range(p):
-                for c in range(p):
-                    hess[b, c] = backend.point(s2[i, s][b, c])
-            target.append(Jet(value, grad, hess, backend))
-    th = [
-        Jet(form(center[b], {b: rho[b]}), unit(b), backend.zeros((m, m)), backend) for b in range(p)
-    ]
+                grad_d[i, s, b] = form(s1[i, s][b], {c: s2[i, s][b, c] * rho[c] for c in range(p)})
+    th = np.array([form(center[b], {b: rho[b]}) for b in range(p)], dtype=object)
     noise = None
     if noisy:
-        eq, eqd = [], []
+        noise = np.empty((n, 2), dtype=object)
         for i in range(n):
-            for s, target in ((0, eq), (1, eqd)):
+            for s in range(2):
                 col = p + 2 * n + 2 * i + s
-                target.append(
-                    Jet(form(iv.mpf(0), {col: rho[col]}), unit(col), backend.zeros((m, m)), backend)
-                )
-        noise = (eq, eqd)
-    gv = planar_perturbation_jets(
-        q, qd, th, consts["nominal"], consts["u"], consts["kp"], consts["kd"], noise
-    )
+                noise[i, s] = form(iv.mpf(0), {col: rho[col]})
+    gv = _evaluate(backend, state, grad_d, s2, th, noise, consts, p, n, noisy)
     out = []
     for jet in gv:
         h = np.empty((m, m), dtype=object)
@@ -743,7 +721,7 @@ def _check_step(iv, backend, k, data, u, gens_d, setup):
     zero = iv.mpf(0)
     xc, s1, s2 = _arr(iv, state[k]), _arr(iv, sens[k]), _arr(iv, sens2[k])
     noise0 = np.full((n, 2), zero, dtype=object) if noisy else None
-    centre = _evaluate(backend, iv, xc, s1, s2, _arr(iv, center), noise0, consts, p, n, noisy)
+    centre = _evaluate(backend, xc, s1, s2, _arr(iv, center), noise0, consts, p, n, noisy)
     m = p + 2 * n + (2 * n if noisy else 0)
     rhat = [float(v) for v in remainder[k].reshape(-1)]
     eta_hat = [
@@ -786,7 +764,6 @@ def _check_step(iv, backend, k, data, u, gens_d, setup):
             th = _arr(iv, center) + sd
             box = _evaluate(
                 backend,
-                iv,
                 tube,
                 grad_d,
                 s2,

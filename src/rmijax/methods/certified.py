@@ -417,8 +417,7 @@ def _perturbation_tape(n, noisy):
     then the constants ``nominal (2n), u (n), kp (n), kd (n)``.
     """
     p = 2 * n
-    n_leaves = 2 * n + p + (2 * n if noisy else 0) + p + 3 * n
-    tape = Tape(n_leaves)
+    tape = Tape(_tape_leaves(n, noisy))
     leaves = tape.leaves()
     take = iter(leaves)
     q, qd = [next(take) for _ in range(n)], [next(take) for _ in range(n)]
@@ -430,6 +429,12 @@ def _perturbation_tape(n, noisy):
     u, kp, kd = ([next(take) for _ in range(n)] for _ in range(3))
     gv = planar_perturbation_jets(q, qd, th, nominal, u, kp, kd, noise)
     return tape.arrays(), tuple(node.index for node in gv)
+
+
+def _tape_leaves(n, noisy):
+    """How many leaves :func:`_perturbation_tape` has for ``n`` joints."""
+    p = 2 * n
+    return 2 * n + p + (2 * n if noisy else 0) + p + 3 * n
 
 
 def _cat(*parts):
@@ -891,9 +896,8 @@ def _affine_batch(n, noisy):
     (9 MB) 13.8 ms alone and 20.8 ms per piece in batches of 16: larger batches leave
     the cache."""
     tape, _ = _perturbation_tape(n, noisy)
-    p = 2 * n
-    m = p + 2 * n + (2 * n if noisy else 0)
-    rows = tape[0].shape[0] + 2 * n + p + (2 * n if noisy else 0) + p + 3 * n
+    m = 4 * n + (2 * n if noisy else 0)  # (d, R[, eta]): p = 2n parameters
+    rows = _tape_leaves(n, noisy) + tape[0].shape[0]
     per_piece = rows * (m * (m + 1) // 2 + m + 1) * (m + 2) * 8
     return max(1, _AFFINE_BUFFER // per_piece)
 
