@@ -17,7 +17,8 @@ float computation of ``c`` and ``a_i`` is rounded to nearest; each result's erro
 is at most an ulp of it, and the operation adds ``2^-50`` (4 ulps) of the
 magnitudes it computed to ``e``; sums of non-negative bounds are scaled up by
 ``(1 + (k + 8) 2^-52)`` for ``k`` terms. ``sin``/``cos`` add ``2^-44`` absolute
-for XLA's float64 ``sin``/``cos`` (as :mod:`rmijax._intervals` does), ``1/x`` uses
+for XLA's float64 ``sin``/``cos`` (as :mod:`rmijax._intervals` does; ``tanh``
+``2^-42``), ``1/x`` uses
 the min-range linearisation with an interval remainder computed with outward
 rounding, ``x^2`` the exact square of the linear part. Nonlinear remainders are
 bounded by products of radii (no Chebyshev refinement).
@@ -212,13 +213,18 @@ def sqr(x: AffineForm) -> AffineForm:
     return AffineForm(c, a, _up(2.0 * jnp.abs(x.c) * x.e + half * (1.0 + _REL) + slack, 4))
 
 
-def _trig(x, fn, slope_fn):
-    """``fn(c + d) = fn(c) + fn'(c) d + rho``, ``|rho| <= d^2 / 2`` (``|fn''| <= 1``)."""
+def _trig(x, fn, slope_fn, library=None):
+    """``fn(c + d) = fn(c) + fn'(c) d + rho``, ``|rho| <= d^2 / 2`` (``|fn''| <= 1``).
+
+    ``library`` bounds the float error of ``fn(c)`` and of the slope (default: XLA's
+    ``sin``/``cos``, ``2^-44`` plus ``|c| 2^-50`` for the argument's reduction).
+    """
     r = x.rad()
     c = fn(x.c)
     s = slope_fn(x.c)
     a = x.a * s[..., None]
-    library = _TRIG_ABS + jnp.abs(x.c) * _REL  # XLA's error in fn(c) and in the slope
+    if library is None:
+        library = _TRIG_ABS + jnp.abs(x.c) * _REL  # XLA's error in fn(c) and in the slope
     slack = jnp.sum(jnp.abs(a), axis=-1) * _REL
     e = jnp.abs(s) * x.e + 0.5 * r * r * (1.0 + _REL) + library * (1.0 + r) + slack
     return AffineForm(c, a, _up(e, 6))
@@ -230,6 +236,13 @@ def sin(x: AffineForm) -> AffineForm:
 
 def cos(x: AffineForm) -> AffineForm:
     return _trig(x, jnp.cos, lambda t: -jnp.sin(t))
+
+
+def tanh(x: AffineForm) -> AffineForm:
+    """``tanh`` by the same first-order form (``|tanh''| <= 4 / (3 sqrt 3) < 1``); the slope
+    ``1 - t^2`` is computed from the float ``t = tanh(c)`` (within ``2^-44`` of the exact
+    value, see :func:`rmijax._intervals.tanh`), so both are within ``2^-42``."""
+    return _trig(x, jnp.tanh, lambda t: 1.0 - jnp.tanh(t) ** 2, library=4 * _TRIG_ABS)
 
 
 def _expand(x: AffineForm, axis: int) -> AffineForm:
@@ -244,6 +257,7 @@ class AffineBackend:
 
     sin = staticmethod(sin)
     cos = staticmethod(cos)
+    tanh = staticmethod(tanh)
     recip = staticmethod(recip)
     sqr = staticmethod(sqr)
 

@@ -35,7 +35,8 @@ that passes for steps ``0..K`` proves the band for those steps. It is slow
 (pure Python intervals: with interval jets about a second per step and piece for two
 joints; with affine jets about 0.1 s for the pendulum, 1 s for two joints and 30 s for
 four), meant for short runs. It shares with the certifier only the formula of the
-perturbation (:func:`rmijax.methods.certified.planar_perturbation_jets`) and the
+perturbation (:func:`rmijax.methods.certified.planar_perturbation_jets`, or
+:func:`rmijax.methods.chain_jets.chain_perturbation_jets` for a loaded arm) and the
 jet's chain rule (:class:`rmijax._intervals.Jet`), both run here on
 ``mpmath`` intervals or :class:`_Form`; the affine arithmetic, the loop matrix and the
 generators are its own.
@@ -51,7 +52,7 @@ from typing import NamedTuple
 import numpy as np
 
 from rmijax._intervals import Jet
-from rmijax.methods.certified import planar_perturbation_jets
+from rmijax.methods.certified import _layout, perturbation_jets
 
 __all__ = ["CheckResult", "check_certificate"]
 
@@ -79,9 +80,18 @@ def _iv():
     return iv
 
 
+def _tanh(iv, x):
+    """``tanh`` on an ``mpmath`` interval: ``1 - 2 / (exp(2x) + 1)``, ``x`` once (mpmath's
+    interval context has no ``tanh``)."""
+    return 1 - 2 / (iv.exp(2 * x) + 1)
+
+
 class _MpBackend:
     def __init__(self, iv):
         self.iv = iv
+
+    def tanh(self, x):
+        return _tanh(self.iv, x)
 
     def sin(self, x):
         return self.iv.sin(x)
@@ -264,6 +274,9 @@ class _MpAffineBackend:
     def cos(self, x):
         return _trig(x, self.iv.cos, lambda t: -self.iv.sin(t))
 
+    def tanh(self, x):  # |tanh''| <= 4 / (3 sqrt 3) < 1
+        return _trig(x, lambda t: _tanh(self.iv, t), lambda t: 1 - _tanh(self.iv, t) ** 2)
+
     def recip(self, x):
         return _recip(x)
 
@@ -332,7 +345,7 @@ def _evaluate(backend, state, grad_d, sens2, th, noise, consts, p, n, noisy):
                 col = p + 2 * n + 2 * i + s
                 target.append(Jet(noise[i, s], unit(col), backend.zeros((m, m)), backend))
         noise_jets = (eq, eqd)
-    return planar_perturbation_jets(
+    return consts["jets"](
         q, qd, th_jets, consts["nominal"], consts["u"], consts["kp"], consts["kd"], noise_jets
     )
 
@@ -445,6 +458,7 @@ def check_certificate(cert, traj, params, *, steps: int | None = None, pieces=No
         carried=cert.propagate == "carried",
         n=n,
         p=p,
+        jets=perturbation_jets(_layout(params)),
     )
     lower, upper = np.asarray(cert.lower, np.float64), np.asarray(cert.upper, np.float64)
     powers = None if setup["carried"] else _powers(iv, kp, kd, dt, n, steps)
@@ -713,6 +727,7 @@ def _check_step(iv, backend, k, data, u, gens_d, setup):
     noise_lo, noise_hi = setup["noise_lo"], setup["noise_hi"]
     segments = setup["segments"]
     consts = dict(
+        jets=setup["jets"],
         nominal=setup["nominal"],
         u=[iv.mpf(float(v)) for v in u],
         kp=[iv.mpf(v) for v in kp],

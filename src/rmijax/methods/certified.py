@@ -50,11 +50,15 @@ re-verifies every pair on short runs (its own affine arithmetic and generators o
 ``mpmath``).
 
 Supported models: the planar point-mass arm (:func:`rmijax.planar_arm`,
-:func:`rmijax.preset_arm`, ...), whose ``M`` and ``h`` the interval jets
-evaluate in their closed form. Other models are refused with a
-``NotImplementedError``; a spatial chain needs the same evaluation of its
-``M(q, th)`` and ``h(q, qd, th)`` on jets (sin, cos, +, *, / of its
-recursive Newton-Euler terms).
+:func:`rmijax.preset_arm`, ...), whose ``M`` and ``h`` the jets evaluate in their
+closed form, and the serial chains of :func:`rmijax.load_robot` (Panda, iiwa14, UR5e,
+any URDF/MJCF chain), evaluated by body-frame Newton-Euler, composite inertias and a
+tip-first ``U D U'`` solve on the same jets (:mod:`rmijax.methods.chain_jets`; the
+chain's constants, joint-frame products and inertias about the joint origins, rounded
+once to float64). Other models are refused with a ``NotImplementedError``. On a chain
+the default box of :func:`rmijax.robots.loaders.default_box` is too wide: the
+remainder diverges within the first 0.1 s (``docs/methods.md``); friction-only boxes
+and a tenth of the default box are certified.
 """
 
 from __future__ import annotations
@@ -70,9 +74,11 @@ from rmijax import _checks
 from rmijax._affine import AffineForm, run_affine_tape
 from rmijax._intervals import Interval, Tape, run_tape, up
 from rmijax.methods.base import Bounds, DivergedError, check_types
+from rmijax.methods.chain_jets import chain_perturbation_jets
 from rmijax.robots.box import UncertainRobot
 from rmijax.robots.model import GRAVITY
 from rmijax.robots.planar import tail_sums
+from rmijax.robots.spatial import ChainLayout
 from rmijax.robots.structure import PlanarPointMass
 from rmijax.trajectory import Trajectory
 
@@ -409,15 +415,41 @@ def _kernel(kp, kd, dt, steps):
 # --------------------------------------------------------------------------
 
 
-@functools.cache
-def _perturbation_tape(n, noisy):
-    """The tape of :func:`planar_perturbation_jets` for ``n`` joints, and its output rows.
+def perturbation_jets(layout):
+    """The function ``(q, qd, th, nominal, u, kp, kd, noise) -> gv`` jets of a model:
+    :func:`planar_perturbation_jets` for ``layout=None`` (the planar arm), else
+    :func:`rmijax.methods.chain_jets.chain_perturbation_jets` for that chain."""
+    if layout is None:
+        return planar_perturbation_jets
+    return functools.partial(chain_perturbation_jets, layout)
 
-    Leaves, in order: ``q (n), qd (n), th (2n)``, with noise ``eq (n), eqd (n)``,
-    then the constants ``nominal (2n), u (n), kp (n), kd (n)``.
+
+def _layout(params):
+    """``None`` for the planar arm, the chain's layout for a loaded arm; refuses others."""
+    structure = params.model.structure
+    if isinstance(structure, PlanarPointMass):
+        return None
+    layout = getattr(structure, "layout", None)
+    if isinstance(layout, ChainLayout):
+        return layout
+    raise NotImplementedError(
+        f"certified_bounds supports the planar point-mass arm (rmijax.planar_arm, "
+        f"preset_arm, paper_arm2, paper_pendulum) and the serial chains of "
+        f"rmijax.load_robot only, got model {params.model.name!r}: its mass matrix and "
+        "bias must be evaluated on interval 2-jets (rmijax.methods.chain_jets shows what "
+        "is needed)"
+    )
+
+
+@functools.cache
+def _perturbation_tape(layout, n, p, noisy):
+    """The tape of :func:`perturbation_jets` for ``n`` joints and ``p`` parameters, and its
+    output rows.
+
+    Leaves, in order: ``q (n), qd (n), th (p)``, with noise ``eq (n), eqd (n)``,
+    then the constants ``nominal (p), u (n), kp (n), kd (n)``.
     """
-    p = 2 * n
-    tape = Tape(_tape_leaves(n, noisy))
+    tape = Tape(_tape_leaves(n, p, noisy))
     leaves = tape.leaves()
     take = iter(leaves)
     q, qd = [next(take) for _ in range(n)], [next(take) for _ in range(n)]
@@ -427,13 +459,12 @@ def _perturbation_tape(n, noisy):
         noise = ([next(take) for _ in range(n)], [next(take) for _ in range(n)])
     nominal = [next(take) for _ in range(p)]
     u, kp, kd = ([next(take) for _ in range(n)] for _ in range(3))
-    gv = planar_perturbation_jets(q, qd, th, nominal, u, kp, kd, noise)
+    gv = perturbation_jets(layout)(q, qd, th, nominal, u, kp, kd, noise)
     return tape.arrays(), tuple(node.index for node in gv)
 
 
-def _tape_leaves(n, noisy):
-    """How many leaves :func:`_perturbation_tape` has for ``n`` joints."""
-    p = 2 * n
+def _tape_leaves(n, p, noisy):
+    """How many leaves :func:`_perturbation_tape` has for ``n`` joints, ``p`` parameters."""
     return 2 * n + p + (2 * n if noisy else 0) + p + 3 * n
 
 
@@ -443,7 +474,7 @@ def _cat(*parts):
     )
 
 
-def _evaluate(state, state_grad_d, sens2, th_value, noise_value, consts, remainder_box=None):
+def _evaluate(state, state_grad_d, sens2, th_value, noise_value, consts, layout=None):
     """``gv`` jets in the variables ``(d (p), R (2n)[, eta (2n)])`` of one step.
 
     Args:
@@ -451,6 +482,7 @@ def _evaluate(state, state_grad_d, sens2, th_value, noise_value, consts, remaind
             its derivative in ``d``; sens2: (n, 2, p, p) its second derivative.
         th_value: Interval (p,); noise_value: Interval (n, 2) or None.
         consts: dict of nominal (p,), u, kp, kd (n,).
+        layout: the model's (:func:`_layout`).
 
     Returns:
         Intervals ``gv`` (n,), gradient (n, m), Hessian (n, m, m).
@@ -479,12 +511,12 @@ def _evaluate(state, state_grad_d, sens2, th_value, noise_value, consts, remaind
     grads.append(Interval(jnp.zeros((constants.shape[0], m), dtype)))
     hessians.append(Interval(jnp.zeros((constants.shape[0], m, m), dtype)))
     value, grad, hessian = _cat(*values), _cat(*grads), _cat(*hessians)
-    tape, rows = _perturbation_tape(n, noisy)
+    tape, rows = _perturbation_tape(layout, n, p, noisy)
     leaves = (value.lo, value.hi, grad.lo, grad.hi, hessian.lo, hessian.hi)
     return run_tape(tape, leaves, np.asarray(rows))
 
 
-def _evaluate_affine(xc, sens, sens2, center, d_rad, rhat, eta_hat, scale, consts):
+def _evaluate_affine(xc, sens, sens2, center, d_rad, rhat, eta_hat, scale, consts, layout=None):
     """The Hessian of ``gv`` in ``z = (d, R[, eta])`` over the box ``scale Z``, enclosed
     by affine arithmetic with rounding bounded (:mod:`rmijax._affine`).
 
@@ -500,7 +532,7 @@ def _evaluate_affine(xc, sens, sens2, center, d_rad, rhat, eta_hat, scale, const
         xc: (n, 2) centre state; sens: (n, 2, p); sens2: (n, 2, p, p) (symmetric).
         center: (p,) ``th_c``; d_rad: (p,) the piece's half-widths (upper bounds);
         rhat: (n, 2) remainder bound; eta_hat: (n, 2) noise bound, or None.
-        scale: the segment's end ``s``; consts: as :func:`_evaluate`.
+        scale: the segment's end ``s``; consts, layout: as :func:`_evaluate`.
 
     Returns:
         ``(lo, hi)`` (n, m, m): bounds of every Hessian entry over the box.
@@ -551,7 +583,7 @@ def _evaluate_affine(xc, sens, sens2, center, d_rad, rhat, eta_hat, scale, const
         return AffineForm(*parts)
 
     leaves = (cat(values), cat(grads), cat([AffineForm.point(h, m) for h in hess]))
-    tape, rows = _perturbation_tape(n, noisy)
+    tape, rows = _perturbation_tape(layout, n, p, noisy)
     _, _, h = run_affine_tape(tape, leaves, np.asarray(rows))
     return h.bounds()
 
@@ -572,6 +604,7 @@ def _certify_piece(
     diagnostics=False,
     enclosure="interval",
     propagate="kernel",
+    layout=None,
 ):
     """The Taylor-model induction over the whole run for one piece of the box.
 
@@ -609,7 +642,7 @@ def _certify_piece(
         # --- the centre: coefficients of the next Taylor model ---------------
         zero_noise = Interval(jnp.zeros((n, 2), dtype)) if noisy else None
         g0, g1, g2 = _evaluate(
-            Interval(xc), Interval(sens), sens2, Interval(center), zero_noise, consts, None
+            Interval(xc), Interval(sens), sens2, Interval(center), zero_noise, consts, layout
         )
         kp_c, kd_c = kp[:, None], kd[:, None]
         q, qd = Interval(xc[:, 0]), Interval(xc[:, 1])
@@ -654,6 +687,7 @@ def _certify_piece(
                         eta_hat if noisy else None,
                         s_hi,
                         consts,
+                        layout,
                     )
                 )
             else:
@@ -663,7 +697,7 @@ def _certify_piece(
                 grad_d = Interval(sens) + (Interval(sens2) * sd_box[None, None, None, :]).sum(-1)
                 th_box = Interval(center) + sd_box
                 noise_s = noise_box * s_hi if noisy else None
-                _, _, h_box = _evaluate(tube, grad_d, sens2, th_box, noise_s, consts, None)
+                _, _, h_box = _evaluate(tube, grad_d, sens2, th_box, noise_s, consts, layout)
             return (h_box - centre_h).mag() * weight
 
         spread = jnp.sum(jax.vmap(segment_spread)(seg_hi, seg_weight), axis=0)
@@ -844,6 +878,7 @@ def _w_blocks(linear, quadratic, n, p):
         "diagnostics",
         "enclosure",
         "propagate",
+        "layout",
     ),
 )
 def _certify(
@@ -862,6 +897,7 @@ def _certify(
     diagnostics=False,
     enclosure="interval",
     propagate="kernel",
+    layout=None,
 ):
     kernel, tail = _kernel(traj.kp, traj.kd, traj.dt, kernel_steps)
     run = functools.partial(
@@ -878,8 +914,10 @@ def _certify(
         diagnostics=diagnostics,
         enclosure=enclosure,
         propagate=propagate,
+        layout=layout,
     )
-    batch = _affine_batch(traj.n_joints, noisy) if enclosure == "affine" else centers.shape[0]
+    n, p = traj.n_joints, centers.shape[1]
+    batch = _affine_batch(layout, n, p, noisy) if enclosure == "affine" else centers.shape[0]
     if batch < centers.shape[0]:  # pieces in batches: the affine jets' buffers are large
         pieces = jax.lax.map(lambda a: run(*a), (centers, los, his), batch_size=batch)
     else:
@@ -887,7 +925,7 @@ def _certify(
     return pieces, kernel, tail
 
 
-def _affine_batch(n, noisy):
+def _affine_batch(layout, n, p, noisy):
     """How many pieces to evaluate together on affine jets: as many as keep the tape's
     buffers (rows x packed Hessian, gradient and value x (symbols + 2) floats) within
     :data:`_AFFINE_BUFFER`, at least one. Measured on this 2-core CPU (the Intel Xeon
@@ -895,9 +933,9 @@ def _affine_batch(n, noisy):
     7.4 / 8.6 s once compiled in batches of 1 / 2 / 4 / 8 / 16, one 4-link evaluation
     (9 MB) 13.8 ms alone and 20.8 ms per piece in batches of 16: larger batches leave
     the cache."""
-    tape, _ = _perturbation_tape(n, noisy)
-    m = 4 * n + (2 * n if noisy else 0)  # (d, R[, eta]): p = 2n parameters
-    rows = _tape_leaves(n, noisy) + tape[0].shape[0]
+    tape, _ = _perturbation_tape(layout, n, p, noisy)
+    m = p + 2 * n + (2 * n if noisy else 0)  # (d, R[, eta])
+    rows = _tape_leaves(n, p, noisy) + tape[0].shape[0]
     per_piece = rows * (m * (m + 1) // 2 + m + 1) * (m + 2) * 8
     return max(1, _AFFINE_BUFFER // per_piece)
 
@@ -930,15 +968,24 @@ def _pieces(params, splits):
 
 def _split_counts(params, splits):
     p = params.n_params
+    chain = not isinstance(params.model.structure, PlanarPointMass)
     if splits is None:
-        splits = 4 if params.n_joints <= 2 else 3 if params.n_joints <= 4 else 2
+        if chain:
+            splits = 1
+        else:
+            splits = 4 if params.n_joints <= 2 else 3 if params.n_joints <= 4 else 2
     if isinstance(splits, (int, np.integer)) and not isinstance(splits, bool):
         if splits < 1:
             raise ValueError(f"splits must be >= 1, got {splits}")
         if splits == 1:
             return (1,) * p
-        # split the masses (the parameters gv is most non-linear in) into `splits` parts
+        # split the masses (the parameters gv is most non-linear in) into `splits` parts:
+        # the planar arm's n masses; a chain's uncertain mass scales and payload
         n = params.n_joints
+        if chain:
+            units = n + ("payload_mass" in params.model.param_names)
+            uncertain = np.asarray(params.hi) > np.asarray(params.lo)
+            return tuple(int(splits) if b < units and uncertain[b] else 1 for b in range(p))
         return tuple(int(splits) if b < n else 1 for b in range(p))
     counts = tuple(int(s) for s in splits)
     if len(counts) != p or any(s < 1 for s in counts):
@@ -958,6 +1005,7 @@ def _certify_box(
     diagnostics=False,
     enclosure="interval",
     propagate="kernel",
+    layout=None,
 ):
     """Split the box and certify every piece: ``(centers, los, his, pieces, kernel, tail)``.
 
@@ -982,6 +1030,7 @@ def _certify_box(
         diagnostics=diagnostics,
         enclosure=enclosure,
         propagate=propagate,
+        layout=layout,
     )
     return centers, los, his, pieces, kernel, tail
 
@@ -1013,15 +1062,17 @@ def certified_bounds(
 
     Args:
         traj: the desired motion, gains and step.
-        params: a planar point-mass arm with its parameter box.
+        params: a planar point-mass arm or a serial chain of :func:`rmijax.load_robot`,
+            with its parameter box.
         mode: must be ``"coupled"`` (the true plant).
         window: must be None (the certificate covers the whole run).
         noise_lo, noise_hi: sensor noise bounds, scalar, (2,) or (n, 2): added to
             the band, and their effect through the controller is enclosed.
         splits: 1 (no split), an int ``s`` (each mass range in ``s`` equal parts:
-            ``s^n`` pieces), ``p`` ints (parts per parameter), or None: 4 up to
-            two joints, 3 up to four (81 pieces at four joints: fewer diverge with
-            the default enclosure), 2 above. The band is the union of the pieces'
+            ``s^n`` pieces; a chain's uncertain mass scales and payload), ``p`` ints
+            (parts per parameter), or None: on the planar arm 4 up to two joints, 3 up
+            to four (81 pieces at four joints: fewer diverge with the default
+            enclosure), 2 above; on a chain 1. The band is the union of the pieces'
             bands.
         kernel_steps: ``M``, powers of ``A`` applied exactly to the remainder.
         segments: ``J``, radial segments of the Lagrange remainder: the Hessian
@@ -1048,7 +1099,8 @@ def certified_bounds(
         :class:`Certificate`.
 
     Raises:
-        NotImplementedError: a model other than the planar point-mass arm.
+        NotImplementedError: a model other than the planar point-mass arm or a loaded
+            serial chain.
         ValueError: not float64, ``per_joint`` mode, a window, bad splits.
         DivergedError: the remainder bound is not finite (box too wide or the
             loop not contracting over it).
@@ -1063,13 +1115,7 @@ def certified_bounds(
         raise ValueError(
             "certified_bounds has no window: it certifies the whole run from x(0) = x_d(0)"
         )
-    if not isinstance(params.model.structure, PlanarPointMass):
-        raise NotImplementedError(
-            f"certified_bounds supports the planar point-mass arm (rmijax.planar_arm, "
-            f"preset_arm, paper_arm2, paper_pendulum) only, got model {params.model.name!r}: "
-            "its mass matrix and bias must be evaluated on interval 2-jets "
-            "(rmijax.methods.certified.planar_perturbation_jets shows what is needed)"
-        )
+    layout = _layout(params)
     if params.n_joints != traj.n_joints:
         raise ValueError(
             f"traj has {traj.n_joints} joints but params describes a {params.n_joints}-joint robot"
@@ -1100,6 +1146,7 @@ def certified_bounds(
         remainder_scale,
         enclosure=enclosure,
         propagate=propagate,
+        layout=layout,
     )
     lower = jnp.min(pieces["lower"], axis=0)
     upper = jnp.max(pieces["upper"], axis=0)

@@ -955,6 +955,7 @@ def load_robot(
             affine_joints=dynamics.affine_joints,
             reach=dynamics.reach,
             terms_tracks_last=dynamics.terms_tracks_last,
+            layout=dynamics.layout,
         ),
     )
     return uncertain_robot(

@@ -42,6 +42,7 @@ __all__ = [
     "COULOMB_VELOCITY",
     "GRAVITY",
     "Chain",
+    "ChainLayout",
     "Payload",
     "SpatialDynamics",
     "smooth_sign",
@@ -143,6 +144,25 @@ class Payload:
     point: np.ndarray
 
 
+@dataclasses.dataclass(frozen=True, eq=False)
+class ChainLayout:
+    """The chain and parameter layout one :func:`spatial_dynamics` was built from.
+
+    For code that evaluates the same dynamics on its own number types (the certified
+    method's interval and affine jets, :mod:`rmijax.methods.chain_jets`). Compared and
+    hashed by identity.
+
+    Attributes:
+        chain: the static chain.
+        payload: where the payload sits, or None.
+        friction: the friction kinds that are parameters, in order.
+    """
+
+    chain: Chain
+    payload: Payload | None
+    friction: tuple[str, ...]
+
+
 class SpatialDynamics(NamedTuple):
     """The functions of one chain and parameter layout (all single, unbatched arguments).
 
@@ -159,6 +179,7 @@ class SpatialDynamics(NamedTuple):
             beyond it): a body's index, the payload's body, a friction's joint.
         terms_tracks_last: ``(q (n, T), qd (n, T)) -> (M0 (n, n, T), M_b (p, n, n, T),
             h0 (n, T), h_b (p, n, T))``, ``terms`` for ``T`` states, tracks last.
+        layout: the :class:`ChainLayout` these functions were built from.
     """
 
     mass_matrix: Callable
@@ -170,6 +191,7 @@ class SpatialDynamics(NamedTuple):
     affine_joints: tuple[int, ...]
     reach: tuple[int, ...]
     terms_tracks_last: Callable
+    layout: ChainLayout
 
 
 def smooth_sign(qd):
@@ -590,4 +612,5 @@ def spatial_dynamics(
         affine_joints,
         last_joint,
         terms_tracks_last,
+        ChainLayout(chain, payload, friction),
     )

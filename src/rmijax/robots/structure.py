@@ -82,6 +82,10 @@ class LinearDynamics:
             axis moved last. The coupled search calls it once per window step
             (a spatial chain's terms run several times faster this way on CPU).
             None: ``vmap(terms)``.
+        layout: optional, the serial chain the terms come from (a
+            :class:`rmijax.robots.spatial.ChainLayout`, as :func:`rmijax.load_robot`
+            sets): methods that evaluate the dynamics on their own number types read
+            it (``method="certified"`` on interval and affine jets). None: no chain.
     """
 
     affine: tuple[int, ...]
@@ -89,6 +93,7 @@ class LinearDynamics:
     affine_joints: tuple[int, ...] | None = None
     reach: tuple[int, ...] | None = None
     terms_tracks_last: Callable | None = None
+    layout: object = None
 
     def __post_init__(self):
         object.__setattr__(self, "affine", _indices("affine", self.affine))
