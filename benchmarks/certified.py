@@ -3,7 +3,8 @@
 For each case:
 
 - time: one call with compile (``seconds``) and a second call (``seconds_warm``);
-- soundness: all ``2^p`` corners (``p <= 12``) and ``--draws`` uniform draws run by
+- soundness: all ``2^p`` corners (``p <= 12``; above, 256 random corners and both ends
+  of the box) and ``--draws`` uniform draws run by
   ``rmijax.simulate``, and the ``worst_case`` maximisers at the scored times; the
   count of samples outside the band by more than 1e-12; an attack on the band
   (projected gradient over ``th`` of the slack, with restarts) at the steps where
@@ -38,11 +39,19 @@ Examples::
         --json benchmarks/results/certified_faults_cpu.json
     PYTHONPATH=src python3 benchmarks/certified.py --cases preset4_sine --duration 1 \\
         --cold-only --json benchmarks/results/certified_preset4_affine_cpu.json
+    PYTHONPATH=src python3 benchmarks/certified.py --cases ur5e_friction ur5e_tenth \\
+        --duration 1 --json benchmarks/results/certified_arms_cpu.json
+
+The ``<arm>_friction`` and ``<arm>_tenth`` cases (``ur5e``, ``panda``, ``iiwa14``) are
+the arm of :func:`rmijax.load_robot` on the first seconds of the pick-and-place move of
+``rmijax --robot``: the default box's friction ranges alone, or a tenth of the whole
+default box (mass scales, payload, friction).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 
@@ -69,18 +78,65 @@ CASES = {
 }
 
 
-def _samples(params, draws, seed=0):
+def _arm_case(name, share=None):
+    """A loaded arm on the pick-and-place move of ``rmijax --robot`` (its first
+    ``duration`` s): with ``share=None`` the default box's friction ranges only (masses
+    and payload certain), else ``share`` of the whole default box (mass scales, payload,
+    friction)."""
+
+    def build():
+        from rmijax.robots.loaders import default_box
+
+        box = default_box(name)
+        if share is None:
+            box = dict(friction=box["friction"])
+        else:
+            box = dict(
+                mass=box["mass"] * share,
+                payload=(0.0, box["payload"][1] * share),
+                friction={kind: pairs * share for kind, pairs in box["friction"].items()},
+            )
+        return rmijax.load_robot(name, **box)
+
+    def motion(duration):
+        from rmijax.apps.real_arm import home_pose, pick_and_place
+
+        traj = pick_and_place(home_pose(name))
+        steps = int(round(duration / traj.dt)) + 1
+        keys = ("t", "q_d", "qd_d", "qdd_d", "u_d", "x_n", "qdd_n")
+        return dataclasses.replace(traj, **{k: getattr(traj, k)[:steps] for k in keys})
+
+    return build, motion
+
+
+for _arm in ("ur5e", "panda", "iiwa14"):
+    CASES[f"{_arm}_friction"] = _arm_case(_arm)
+    CASES[f"{_arm}_tenth"] = _arm_case(_arm, 0.1)
+
+
+def _trajectory(paths, duration):
+    """The case's motion: named paths per joint, or a loaded arm's move."""
+    return paths(duration) if callable(paths) else rmijax.trajectory(paths, duration=duration)
+
+
+def _samples(params, draws, seed=0, corners=256):
+    """Every corner (``p <= 12``; else ``corners`` random ones and both box ends) and
+    ``draws`` uniform draws."""
     lo, hi = np.asarray(params.lo), np.asarray(params.hi)
-    rows = [lo + (hi - lo) * np.random.default_rng(seed).uniform(size=(draws, lo.size))]
+    rng = np.random.default_rng(seed)
+    rows = [lo + (hi - lo) * rng.uniform(size=(draws, lo.size))]
     if params.n_params <= 12:
         rows.insert(0, np.asarray(params.corners))
+    else:
+        bits = np.random.default_rng(seed + 1).integers(0, 2, size=(corners, lo.size))
+        rows.insert(0, np.concatenate([np.where(bits == 1, hi, lo), [lo, hi]]))
     return np.concatenate(rows)
 
 
 def run_case(name, duration, draws, every, splits, options=None, warm=True):
     builder, paths = CASES[name]
     params = builder()
-    traj = rmijax.trajectory(paths, duration=duration)
+    traj = _trajectory(paths, duration)
     options = dict(options or {})
     start = time.perf_counter()
     bounds, cert = certified_bounds(traj, params, splits=splits, **options)
@@ -262,7 +318,7 @@ def run_checker():
     for name, duration, splits, pairs, steps, pieces in CHECKER_RUNS:
         make, paths = CASES[name]
         params = make()
-        traj = rmijax.trajectory(paths, duration=duration)
+        traj = _trajectory(paths, duration)
         for enclosure, propagate in PAIRS if pairs == "all" else pairs:
             options = dict(splits=splits, enclosure=enclosure, propagate=propagate)
             started = time.perf_counter()
