@@ -228,10 +228,12 @@ def test_chain_remainder_switched_off_lets_samples_escape(ur5e_small):
     ("enclosure", "propagate", "steps"), [("interval", "kernel", 2), ("affine", "carried", 1)]
 )
 def test_checker_verifies_a_chain_certificate(enclosure, propagate, steps):
-    """The independent checker (mpmath jets of the chain: 10 s a step with interval jets,
-    150 s with affine ones) re-verifies the first steps of a UR5e certificate and rejects
-    its halved-remainder mutant. The payload alone is uncertain (``p = 7``: the checker's
-    cost grows with the cube of the jets' dimension)."""
+    """The independent checker (mpmath jets of the chain: 4 s a step with interval jets,
+    24 s with affine ones) re-verifies the first steps of a UR5e certificate, rejects its
+    halved-remainder mutant and a centre that moves a certain parameter. The payload
+    alone is uncertain: the six mass scales (``lo == hi``) are constants of the jets for
+    both the certifier and the checker (``m = 13`` variables, not 19; the checker's cost
+    grows with the cube of it)."""
     params = rmijax.load_robot("ur5e", payload=(0.0, 0.2))
     traj = _short(real_arm_case("ur5e").traj, steps + 1)
     options = dict(enclosure=enclosure, propagate=propagate)
@@ -242,3 +244,8 @@ def test_checker_verifies_a_chain_certificate(enclosure, propagate, steps):
     rejected = check_certificate(mutant, traj, params, steps=steps)
     assert not rejected.ok
     assert "below the recomputed bound" in rejected.reason
+    # the certain mass scales are constants of the jets only at their value
+    moved = dataclasses.replace(cert, center=cert.center.at[0, 0].add(1e-9))
+    rejected = check_certificate(moved, traj, params, steps=steps)
+    assert not rejected.ok
+    assert "centre lies outside the piece" in rejected.reason

@@ -317,7 +317,9 @@ def _evaluate(backend, state, grad_d, sens2, th, noise, consts, p, n, noisy):
 
     ``state`` (n, 2), ``grad_d`` (n, 2, p), ``th`` (p,), ``noise`` (n, 2) or None: object
     arrays of the backend's values (``mpmath`` intervals, or :class:`_Form`);
-    ``sens2`` (n, 2, p, p) intervals, the state's second derivative in ``d``.
+    ``sens2`` (n, 2, p, p) intervals, the state's second derivative in ``d``. ``d`` and
+    ``th`` hold the uncertain parameters only (``p`` of them); with ``consts["free"]``
+    (their indices) the others enter as the constants ``consts["fixed"]``.
     """
     m = p + 2 * n + (2 * n if noisy else 0)
 
@@ -337,6 +339,15 @@ def _evaluate(backend, state, grad_d, sens2, th, noise, consts, p, n, noisy):
                     hess[b, c] = backend.point(sens2[i, s][b, c])
             target.append(Jet(state[i, s], grad, hess, backend))
     th_jets = [Jet(th[b], unit(b), backend.zeros((m, m)), backend) for b in range(p)]
+    if consts.get("free") is not None:  # the certain parameters enter as constants
+        free, fixed = consts["free"], consts["fixed"]
+        given = dict(zip(free, th_jets, strict=True))
+        th_jets = [
+            given[b]
+            if b in given
+            else Jet(backend.point(fixed[b]), backend.zeros((m,)), backend.zeros((m, m)), backend)
+            for b in range(len(fixed))
+        ]
     noise_jets = None
     if noisy:
         eq, eqd = [], []
@@ -430,7 +441,11 @@ def check_certificate(cert, traj, params, *, steps: int | None = None, pieces=No
         )
     iv = _iv()
     backend = _MpBackend(iv)
-    n, p = traj.n_joints, params.n_params
+    n = traj.n_joints
+    # the certain parameters (lo == hi) are constants, not variables: p counts the others
+    box_lo, box_hi = np.asarray(params.lo, np.float64), np.asarray(params.hi, np.float64)
+    free = [b for b in range(params.n_params) if box_lo[b] < box_hi[b]]
+    p = len(free)
     total = int(np.asarray(cert.state).shape[1]) - 1
     steps = total if steps is None else min(int(steps), total)
     reason = _tiling_error(cert, params)
@@ -459,6 +474,8 @@ def check_certificate(cert, traj, params, *, steps: int | None = None, pieces=No
         n=n,
         p=p,
         jets=perturbation_jets(_layout(params)),
+        free=free,
+        fixed=[float(v) for v in box_lo],
     )
     lower, upper = np.asarray(cert.lower, np.float64), np.asarray(cert.upper, np.float64)
     powers = None if setup["carried"] else _powers(iv, kp, kd, dt, n, steps)
@@ -468,14 +485,16 @@ def check_certificate(cert, traj, params, *, steps: int | None = None, pieces=No
             key: np.asarray(getattr(cert, key)[piece], np.float64)
             for key in ("state", "sens", "sens2", "injected", "remainder", "center")
         }
-        state, sens, sens2 = data["state"], data["sens"], data["sens2"]
         injected, remainder, center = data["injected"], data["remainder"], data["center"]
+        # below, d and its coefficients: the uncertain parameters only (the tiling check
+        # above holds every piece's centre in it, so a certain one's is its value, d = 0)
+        center = center[free]
+        sens2 = data["sens2"][..., free, :][..., free]
+        data |= dict(center=center, sens=data["sens"][..., free], sens2=sens2)
+        state, sens = data["state"], data["sens"]
+        piece_lo, piece_hi = np.asarray(cert.lo[piece]), np.asarray(cert.hi[piece])
         th_box = np.array(
-            [
-                iv.mpf([float(a), float(b)])
-                for a, b in zip(cert.lo[piece], cert.hi[piece], strict=True)
-            ],
-            dtype=object,
+            [iv.mpf([float(piece_lo[b]), float(piece_hi[b])]) for b in free], dtype=object
         )
         d_box = th_box - _arr(iv, center)
         d_rad = [_mag(d) for d in d_box]
@@ -728,6 +747,8 @@ def _check_step(iv, backend, k, data, u, gens_d, setup):
     segments = setup["segments"]
     consts = dict(
         jets=setup["jets"],
+        free=setup["free"],
+        fixed=setup["fixed"],
         nominal=setup["nominal"],
         u=[iv.mpf(float(v)) for v in u],
         kp=[iv.mpf(v) for v in kp],

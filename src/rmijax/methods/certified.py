@@ -474,7 +474,7 @@ def _cat(*parts):
     )
 
 
-def _evaluate(state, state_grad_d, sens2, th_value, noise_value, consts, layout=None):
+def _evaluate(state, state_grad_d, sens2, th_value, noise_value, consts, layout=None, free=None):
     """``gv`` jets in the variables ``(d (p), R (2n)[, eta (2n)])`` of one step.
 
     Args:
@@ -483,6 +483,9 @@ def _evaluate(state, state_grad_d, sens2, th_value, noise_value, consts, layout=
         th_value: Interval (p,); noise_value: Interval (n, 2) or None.
         consts: dict of nominal (p,), u, kp, kd (n,).
         layout: the model's (:func:`_layout`).
+        free: None, or the indices of the uncertain parameters (static): then ``d``,
+            ``th_value`` and the state's derivatives hold those only, and the certain
+            ones enter as the constants ``consts["fixed"]`` (the box's ``lo == hi``).
 
     Returns:
         Intervals ``gv`` (n,), gradient (n, m), Hessian (n, m, m).
@@ -499,9 +502,15 @@ def _evaluate(state, state_grad_d, sens2, th_value, noise_value, consts, layout=
     )
     hess = jnp.zeros((n, 2, m, m), dtype).at[..., :p, :p].set(sens2)
     swap = lambda x: jnp.swapaxes(x, 0, 1).reshape((2 * n,) + x.shape[2:])  # noqa: E731
+    th_grad = eye[:p]
+    if free is not None:  # the certain parameters: constants of the tape
+        fixed, rows = consts["fixed"], np.asarray(free, dtype=np.int32)
+        th_value = Interval(fixed.at[rows].set(th_value.lo), fixed.at[rows].set(th_value.hi))
+        th_grad = jnp.zeros((fixed.shape[0], m), dtype).at[rows].set(th_grad)
+    width = th_grad.shape[0]  # the tape's parameters
     values = [Interval(swap(state.lo), swap(state.hi)), th_value]
-    grads = [Interval(swap(grad_d_full.lo), swap(grad_d_full.hi)), Interval(eye[:p])]
-    hessians = [Interval(swap(hess)), Interval(jnp.zeros((p, m, m), dtype))]
+    grads = [Interval(swap(grad_d_full.lo), swap(grad_d_full.hi)), Interval(th_grad)]
+    hessians = [Interval(swap(hess)), Interval(jnp.zeros((width, m, m), dtype))]
     if noisy:
         values.append(Interval(swap(noise_value.lo), swap(noise_value.hi)))
         grads.append(Interval(swap(eye[p + 2 * n :].reshape(n, 2, m))))
@@ -511,12 +520,14 @@ def _evaluate(state, state_grad_d, sens2, th_value, noise_value, consts, layout=
     grads.append(Interval(jnp.zeros((constants.shape[0], m), dtype)))
     hessians.append(Interval(jnp.zeros((constants.shape[0], m, m), dtype)))
     value, grad, hessian = _cat(*values), _cat(*grads), _cat(*hessians)
-    tape, rows = _perturbation_tape(layout, n, p, noisy)
+    tape, rows = _perturbation_tape(layout, n, width, noisy)
     leaves = (value.lo, value.hi, grad.lo, grad.hi, hessian.lo, hessian.hi)
     return run_tape(tape, leaves, np.asarray(rows))
 
 
-def _evaluate_affine(xc, sens, sens2, center, d_rad, rhat, eta_hat, scale, consts, layout=None):
+def _evaluate_affine(
+    xc, sens, sens2, center, d_rad, rhat, eta_hat, scale, consts, layout=None, free=None
+):
     """The Hessian of ``gv`` in ``z = (d, R[, eta])`` over the box ``scale Z``, enclosed
     by affine arithmetic with rounding bounded (:mod:`rmijax._affine`).
 
@@ -532,7 +543,7 @@ def _evaluate_affine(xc, sens, sens2, center, d_rad, rhat, eta_hat, scale, const
         xc: (n, 2) centre state; sens: (n, 2, p); sens2: (n, 2, p, p) (symmetric).
         center: (p,) ``th_c``; d_rad: (p,) the piece's half-widths (upper bounds);
         rhat: (n, 2) remainder bound; eta_hat: (n, 2) noise bound, or None.
-        scale: the segment's end ``s``; consts, layout: as :func:`_evaluate`.
+        scale: the segment's end ``s``; consts, layout, free: as :func:`_evaluate`.
 
     Returns:
         ``(lo, hi)`` (n, m, m): bounds of every Hessian entry over the box.
@@ -563,10 +574,17 @@ def _evaluate_affine(xc, sens, sens2, center, d_rad, rhat, eta_hat, scale, const
     g_a = jnp.zeros((n, 2, m, m), dtype).at[..., :p, :p].set(sens2 * rad[None, None, None, :p])
     g_form = exact(swap(coef), swap(g_a), jnp.zeros((2 * n, m), dtype))
     h_x = jnp.zeros((n, 2, m, m), dtype).at[..., :p, :p].set(sens2)
-    th_form = exact(center, eye[:p] * rad[None], jnp.zeros((p,), dtype))
+    th_c, th_a, th_grad = center, eye[:p] * rad[None], eye[:p]
+    if free is not None:  # the certain parameters: constants of the tape
+        fixed, rows = consts["fixed"], np.asarray(free, dtype=np.int32)
+        th_c = fixed.at[rows].set(center)
+        th_a = jnp.zeros((fixed.shape[0], m), dtype).at[rows].set(th_a)
+        th_grad = jnp.zeros((fixed.shape[0], m), dtype).at[rows].set(th_grad)
+    width = th_c.shape[0]  # the tape's parameters
+    th_form = exact(th_c, th_a, jnp.zeros((width,), dtype))
     values, grads, hess = [x_form, th_form], [g_form], [swap(h_x)]
-    grads.append(AffineForm.point(eye[:p], m))
-    hess.append(jnp.zeros((p, m, m), dtype))
+    grads.append(AffineForm.point(th_grad, m))
+    hess.append(jnp.zeros((width, m, m), dtype))
     if noisy:
         eta_c = jnp.zeros((2 * n,), dtype)
         unit_eta = swap(eye[p + 2 * n :].reshape(n, 2, m))
@@ -583,7 +601,7 @@ def _evaluate_affine(xc, sens, sens2, center, d_rad, rhat, eta_hat, scale, const
         return AffineForm(*parts)
 
     leaves = (cat(values), cat(grads), cat([AffineForm.point(h, m) for h in hess]))
-    tape, rows = _perturbation_tape(layout, n, p, noisy)
+    tape, rows = _perturbation_tape(layout, n, width, noisy)
     _, _, h = run_affine_tape(tape, leaves, np.asarray(rows))
     return h.bounds()
 
@@ -605,12 +623,16 @@ def _certify_piece(
     enclosure="interval",
     propagate="kernel",
     layout=None,
+    free=None,
+    fixed=None,
 ):
     """The Taylor-model induction over the whole run for one piece of the box.
 
     ``scale`` multiplies the remainder (1 in use; the tests' mutations set it to
-    0 or 0.5 to show that it matters). With ``diagnostics`` (static) the output also
-    holds ``w_blocks`` (T, n, 10): ``w_k`` split by source (see :func:`_w_blocks`).
+    0 or 0.5 to show that it matters). With ``free`` (static) the piece's ``center``,
+    ``lo``, ``hi`` hold the uncertain parameters only and ``fixed`` (p,) gives the
+    others. With ``diagnostics`` (static) the output also holds ``w_blocks`` (T, n, 10):
+    ``w_k`` split by source (see :func:`_w_blocks`).
     """
     n = traj.n_joints
     p = center.shape[0]
@@ -638,11 +660,11 @@ def _certify_piece(
 
     def step(carry, u):
         xc, sens, sens2, buf, tail_max, rhat, gens, gens_d, k = carry
-        consts = dict(nominal=nominal, u=u, kp=kp, kd=kd)
+        consts = dict(nominal=nominal, u=u, kp=kp, kd=kd, fixed=fixed)
         # --- the centre: coefficients of the next Taylor model ---------------
         zero_noise = Interval(jnp.zeros((n, 2), dtype)) if noisy else None
         g0, g1, g2 = _evaluate(
-            Interval(xc), Interval(sens), sens2, Interval(center), zero_noise, consts, layout
+            Interval(xc), Interval(sens), sens2, Interval(center), zero_noise, consts, layout, free
         )
         kp_c, kd_c = kp[:, None], kd[:, None]
         q, qd = Interval(xc[:, 0]), Interval(xc[:, 1])
@@ -688,6 +710,7 @@ def _certify_piece(
                         s_hi,
                         consts,
                         layout,
+                        free,
                     )
                 )
             else:
@@ -697,7 +720,7 @@ def _certify_piece(
                 grad_d = Interval(sens) + (Interval(sens2) * sd_box[None, None, None, :]).sum(-1)
                 th_box = Interval(center) + sd_box
                 noise_s = noise_box * s_hi if noisy else None
-                _, _, h_box = _evaluate(tube, grad_d, sens2, th_box, noise_s, consts, layout)
+                _, _, h_box = _evaluate(tube, grad_d, sens2, th_box, noise_s, consts, layout, free)
             return (h_box - centre_h).mag() * weight
 
         spread = jnp.sum(jax.vmap(segment_spread)(seg_hi, seg_weight), axis=0)
@@ -879,6 +902,7 @@ def _w_blocks(linear, quadratic, n, p):
         "enclosure",
         "propagate",
         "layout",
+        "free",
     ),
 )
 def _certify(
@@ -898,6 +922,8 @@ def _certify(
     enclosure="interval",
     propagate="kernel",
     layout=None,
+    free=None,
+    fixed=None,
 ):
     kernel, tail = _kernel(traj.kp, traj.kd, traj.dt, kernel_steps)
     run = functools.partial(
@@ -915,9 +941,14 @@ def _certify(
         enclosure=enclosure,
         propagate=propagate,
         layout=layout,
+        free=free,
+        fixed=fixed,
     )
-    n, p = traj.n_joints, centers.shape[1]
-    batch = _affine_batch(layout, n, p, noisy) if enclosure == "affine" else centers.shape[0]
+    n, p = traj.n_joints, params.n_params
+    if enclosure == "affine":
+        batch = _affine_batch(layout, n, p, centers.shape[1], noisy)
+    else:
+        batch = centers.shape[0]
     if batch < centers.shape[0]:  # pieces in batches: the affine jets' buffers are large
         pieces = jax.lax.map(lambda a: run(*a), (centers, los, his), batch_size=batch)
     else:
@@ -925,7 +956,7 @@ def _certify(
     return pieces, kernel, tail
 
 
-def _affine_batch(layout, n, p, noisy):
+def _affine_batch(layout, n, p, variables, noisy):
     """How many pieces to evaluate together on affine jets: as many as keep the tape's
     buffers (rows x packed Hessian, gradient and value x (symbols + 2) floats) within
     :data:`_AFFINE_BUFFER`, at least one. Measured on this 2-core CPU (the Intel Xeon
@@ -934,7 +965,7 @@ def _affine_batch(layout, n, p, noisy):
     (9 MB) 13.8 ms alone and 20.8 ms per piece in batches of 16: larger batches leave
     the cache."""
     tape, _ = _perturbation_tape(layout, n, p, noisy)
-    m = p + 2 * n + (2 * n if noisy else 0)  # (d, R[, eta])
+    m = variables + 2 * n + (2 * n if noisy else 0)  # (d, R[, eta]): uncertain ``d`` only
     rows = _tape_leaves(n, p, noisy) + tape[0].shape[0]
     per_piece = rows * (m * (m + 1) // 2 + m + 1) * (m + 2) * 8
     return max(1, _AFFINE_BUFFER // per_piece)
@@ -1015,6 +1046,13 @@ def _certify_box(
     """
     noisy = bool(np.any(np.asarray(noise_lo) != 0) or np.any(np.asarray(noise_hi) != 0))
     centers, los, his = _pieces(params, _split_counts(params, splits))
+    lo, hi = np.asarray(params.lo), np.asarray(params.hi)
+    free = tuple(int(b) for b in np.flatnonzero(hi > lo))
+    if len(free) == lo.size:  # every parameter uncertain: nothing to fold
+        free, fixed = None, None
+    else:  # certain parameters are constants, not variables of the jets
+        fixed = jnp.asarray(lo)
+        centers, los, his = (a[:, list(free)] for a in (centers, los, his))
     pieces, kernel, tail = _certify(
         traj,
         params,
@@ -1031,7 +1069,18 @@ def _certify_box(
         enclosure=enclosure,
         propagate=propagate,
         layout=layout,
+        free=free,
+        fixed=fixed,
     )
+    if free is not None:  # back to every parameter: the certain ones' coefficients are 0
+        centers, los, his = _pieces(params, _split_counts(params, splits))
+        rows = np.asarray(free, dtype=np.int32)
+        p = lo.size
+        sens, sens2 = pieces["sens"], pieces["sens2"]
+        full = jnp.zeros(sens.shape[:-1] + (p,), sens.dtype).at[..., rows].set(sens)
+        full2 = jnp.zeros(sens2.shape[:-2] + (p, p), sens2.dtype)
+        full2 = full2.at[..., rows[:, None], rows[None, :]].set(sens2)
+        pieces = pieces | dict(sens=full, sens2=full2)
     return centers, los, his, pieces, kernel, tail
 
 
