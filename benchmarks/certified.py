@@ -42,10 +42,10 @@ Examples::
     PYTHONPATH=src python3 benchmarks/certified.py --cases ur5e_friction ur5e_tenth \\
         --duration 1 --json benchmarks/results/certified_arms_cpu.json
 
-The ``<arm>_friction`` and ``<arm>_tenth`` cases (``ur5e``, ``panda``, ``iiwa14``) are
-the arm of :func:`rmijax.load_robot` on the first seconds of the pick-and-place move of
-``rmijax --robot``: the default box's friction ranges alone, or a tenth of the whole
-default box (mass scales, payload, friction).
+The ``<arm>_friction``, ``<arm>_tenth`` and ``<arm>_box`` cases (``ur5e``, ``panda``,
+``iiwa14``) are the arm of :func:`rmijax.load_robot` on the first seconds of the
+pick-and-place move of ``rmijax --robot``: the default box's friction ranges alone, a
+tenth of the whole default box (mass scales, payload, friction), or all of it.
 """
 
 from __future__ import annotations
@@ -112,6 +112,7 @@ def _arm_case(name, share=None):
 for _arm in ("ur5e", "panda", "iiwa14"):
     CASES[f"{_arm}_friction"] = _arm_case(_arm)
     CASES[f"{_arm}_tenth"] = _arm_case(_arm, 0.1)
+    CASES[f"{_arm}_box"] = _arm_case(_arm, 1.0)
 
 
 def _trajectory(paths, duration):
