@@ -497,8 +497,9 @@ def certified_batch(
         check_types(traj, robot)
         if not isinstance(robot.model.structure, PlanarPointMass):
             raise NotImplementedError(
-                "certified bounds support the planar point-mass arm only, got model "
-                f"{robot.model.name!r}"
+                "certified_batch shards the planar point-mass arm only, got model "
+                f"{robot.model.name!r}: for a loaded arm call rmijax.certified_bounds "
+                "per run (on a small box: see docs/methods.md, section 7)"
             )
         if jnp.result_type(traj.dtype, robot.dtype) != jnp.float64:
             raise ValueError("certified bounds work in float64: enable jax_enable_x64")

@@ -82,6 +82,7 @@ def test_folder_reports_every_log_and_resumes(logs, tmp_path, capsys):
         (["--robot", "paper_arm2", "--window", "0"], "--window must be >= 1"),
         (["--robot", "paper_arm2", "--method", "nope"], "invalid choice: 'nope'"),
         (["--robot", "paper_arm2", "--joint-state-topic", "/js"], "apply to bags"),
+        (["--robot", "ur5e", "--method", "certified"], "default box is not certified"),
         ([], "the following arguments are required: --robot"),
     ],
 )
@@ -89,6 +90,21 @@ def test_bad_options_exit_2_with_one_line(logs, tmp_path, capsys, options, messa
     assert cli.main(["check", str(logs / "stuck.csv"), "--out", str(tmp_path)] + options) == 2
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1
+
+
+def test_diverged_certified_band_exits_1_with_one_line(logs, tmp_path, capsys, monkeypatch):
+    """A certified band whose remainder diverges is reported in one line, not a traceback."""
+    from rmijax import fleet
+    from rmijax.methods.base import DivergedError
+
+    def diverges(*args, **kwargs):
+        raise DivergedError.at((3, 1, 0), "certified bounds of run 0 are not finite (step 3)")
+
+    monkeypatch.setattr(fleet, "certified_batch", diverges)
+    command = ["check", str(logs / "stuck.csv"), "--robot", "paper_arm2", "--method", "certified"]
+    assert cli.main(command + ["--out", str(tmp_path), "--no-progress"]) == 1
+    err = capsys.readouterr().err
+    assert "not finite (step 3)" in err and err.count("\n") == 1
 
 
 def test_missing_log_and_empty_folder_exit_2(tmp_path, capsys):

@@ -121,6 +121,14 @@ def _validate(args):
         args.joint_names = robot_joint_names(args.robot)
     except (ValueError, TypeError, FileNotFoundError, ImportError) as err:
         raise _Refused(str(err).splitlines()[0]) from None
+    from rmijax.robots.structure import PlanarPointMass
+
+    if args.method == "certified" and not isinstance(params.model.structure, PlanarPointMass):
+        raise _Refused(
+            f"--method certified: {args.robot}'s default box is not certified (the remainder "
+            "diverges within 0.1 s, docs/methods.md section 7); call "
+            "rmijax.certified_bounds with a smaller box"
+        )
     from rmijax import _checks
 
     gains = [
@@ -431,6 +439,7 @@ def main(argv=None) -> int:
 
     from rmijax import fleet
     from rmijax.io import LogError, read_log
+    from rmijax.methods.base import DivergedError
 
     mesh = fleet.device_mesh(devices[: args.devices or len(devices)])
     out = pathlib.Path(args.out)
@@ -468,7 +477,11 @@ def main(argv=None) -> int:
         except (LogError, ImportError) as err:
             print(f"rmijax check: {err}", file=sys.stderr)
             return 1
-        (bounds,) = _bands([log], params, args, mesh)
+        try:
+            (bounds,) = _bands([log], params, args, mesh)
+        except DivergedError as err:
+            print(f"rmijax check: {str(err).splitlines()[0]}", file=sys.stderr)
+            return 1
         report = check_log(log, bounds, persistence=args.persistence, tol=args.tol)
         report["settings"] = settings
         _write(out, log, bounds, report, figure=not args.no_figures)
@@ -502,7 +515,11 @@ def main(argv=None) -> int:
                     bar.update(1)
             if not logs:
                 continue
-            all_bounds = _bands([log for _, log in logs], params, args, mesh)
+            try:
+                all_bounds = _bands([log for _, log in logs], params, args, mesh)
+            except DivergedError as err:
+                print(f"rmijax check: {str(err).splitlines()[0]}", file=sys.stderr)
+                return 1
             for (path, log), bounds in zip(logs, all_bounds, strict=True):
                 report = check_log(log, bounds, persistence=args.persistence, tol=args.tol)
                 report["settings"] = settings
