@@ -17,12 +17,19 @@ Since ``M`` and ``h`` are linear in ``th`` (:mod:`rmijax.robots.spatial`), the f
 part of ``f`` is ``-sum_b (th_b - th_n,b) tau_b``: the inverse dynamics of unit inertia
 ``b`` alone at ``(q, qd, qdd = v)`` (gravity included) for the mass scales and the
 payload, ``qd_j`` or ``tanh(qd_j / v_s)`` for friction. It vanishes at the nominal, so
-enclosures carry the size of the parameter error, not of ``v``. The recursions are the
-base-frame ones of :func:`rmijax.robots.spatial.spatial_dynamics` (Featherstone 2008,
-sections 5.3 and 6.2), written on scalars with the chain's constants folded
-(:mod:`rmijax.robots._unrolled`: products with exact 0 and 1 cost nothing). ``M`` is
-factored ``U D U'`` from the tip (``U`` unit upper): ``D_j`` is the articulated inertia
-of joint ``j`` about its axis, so every pivot is positive for every ``th`` in the box.
+enclosures carry the size of the parameter error, not of ``v``.
+
+The recursions run in *body* frames (Featherstone 2008, sections 5.3 and 6.2: Newton-Euler
+outward for velocities and accelerations, inward for forces; composite inertias for ``M``),
+written on scalars with the chain's constants folded (:mod:`rmijax.robots._unrolled`:
+products with exact 0 and 1 cost nothing). The model's own base-frame form
+(:func:`rmijax.robots.spatial.spatial_dynamics`) is the same dynamics, but there every
+inertia is taken about the base origin, so a wrist's small inertia is the difference of
+terms the size of ``m |c|^2`` and interval enclosures over the box lose it; in body frames
+each body's inertia about its own joint is a constant. ``M`` is factored ``U D U'`` from
+the tip (``U`` unit upper): ``D_j`` is the articulated inertia of joint ``j`` about its
+axis, positive for every ``th`` in the box (an enclosure over a wide box can still hold 0:
+then the band is infinite and :func:`rmijax.certified_bounds` says it diverged).
 """
 
 from __future__ import annotations
