@@ -169,16 +169,7 @@ def _apply(inertia, vector):
 
 def _unit_force(inertia, velocity, acceleration):
     """``I a + v x* (I v)``."""
-    momentum, force = _apply(inertia, velocity), _apply(inertia, acceleration)
-    w, v = velocity[:3], velocity[3:]
-    torque = tuple(
-        _u.add(_u.add(f, x), y)
-        for f, x, y in zip(
-            force[:3], _u.cross(w, momentum[:3]), _u.cross(v, momentum[3:]), strict=True
-        )
-    )
-    push = tuple(_u.add(f, x) for f, x in zip(force[3:], _u.cross(w, momentum[3:]), strict=True))
-    return torque + push
+    return _u.plus_cross_force(_apply(inertia, acceleration), velocity, _apply(inertia, velocity))
 
 
 def _inverse_dynamics(local, revolute, joints, qd, qdd, weights):

@@ -11,7 +11,18 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["add", "constant", "cross", "dot", "is_constant", "matmul", "matvec", "mul", "sub"]
+__all__ = [
+    "add",
+    "constant",
+    "cross",
+    "dot",
+    "is_constant",
+    "matmul",
+    "matvec",
+    "mul",
+    "plus_cross_force",
+    "sub",
+]
 
 
 def is_constant(x) -> bool:
@@ -57,6 +68,19 @@ def cross(a, b):
         sub(mul(a[2], b[0]), mul(a[0], b[2])),
         sub(mul(a[0], b[1]), mul(a[1], b[0])),
     )
+
+
+def plus_cross_force(force, velocity, momentum):
+    """``force + v x* momentum`` for spatial vectors (6-tuples, angular first): the spatial
+    force cross product ``v x* h = (w x h_ang + v_o x h_lin, w x h_lin)``, added in the
+    order ``(force + w x h_ang) + v_o x h_lin`` (a body's ``I a + v x* I v``)."""
+    w, vo = velocity[:3], velocity[3:]
+    torque = tuple(
+        add(add(f, x), y)
+        for f, x, y in zip(force[:3], cross(w, momentum[:3]), cross(vo, momentum[3:]), strict=True)
+    )
+    push = tuple(add(f, x) for f, x in zip(force[3:], cross(w, momentum[3:]), strict=True))
+    return torque + push
 
 
 def matvec(matrix, vector):

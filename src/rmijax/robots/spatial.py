@@ -545,19 +545,9 @@ def spatial_dynamics(
                     entries.append(_u.dot(motion[i], projected))
                     places.append(("mass", b, i, j))
             v, a = velocity[last], acceleration[last]
-            momentum, force = apply(b, v), apply(b, a)
-            w, vo = v[:3], v[3:]
-            torque = tuple(
-                _u.add(_u.add(f, x), y)
-                for f, x, y in zip(
-                    force[:3], _u.cross(w, momentum[:3]), _u.cross(vo, momentum[3:]), strict=True
-                )
-            )
-            push = tuple(
-                _u.add(f, x) for f, x in zip(force[3:], _u.cross(w, momentum[3:]), strict=True)
-            )
+            wrench = _u.plus_cross_force(apply(b, a), v, apply(b, v))
             for i in range(last + 1):
-                entries.append(_u.dot(motion[i], torque + push))
+                entries.append(_u.dot(motion[i], wrench))
                 places.append(("bias", b, i, None))
         kept = iter(materialise([array(x) for x in entries]))
         mass_terms = [[[zero] * n for _ in range(n)] for _ in range(n_params)]
