@@ -64,7 +64,7 @@ from _common import run_meta  # noqa: E402
 
 import rmijax  # noqa: E402
 from rmijax.methods.base import DivergedError  # noqa: E402
-from rmijax.methods.certified import certified_bounds  # noqa: E402
+from rmijax.methods.certified import _choice, certified_bounds  # noqa: E402
 
 CASES = {
     "arm2_hold_sine": (rmijax.paper_arm2, ["hold", "sine"]),
@@ -537,7 +537,12 @@ def main(argv=None):
         except DivergedError as err:  # the bound blew up: record where, and go on
             seconds = round(time.perf_counter() - started, 2)
             row = dict(case=name, diverged=str(err), seconds=seconds)
-            row |= {key: value for key, value in options.items() if value is not None}
+            n = CASES[name][0]().n_joints  # the pair the default chooses for it
+            row |= dict(
+                enclosure=_choice("enclosure", args.enclosure, ("interval", "affine"), n),
+                propagate=_choice("propagate", args.propagate, ("kernel", "carried"), n),
+                segments=args.segments,
+            )
             rows.append(row)
             print(f"{name:26} diverged after {row['seconds']} s: {err}", flush=True)
             if args.json:
