@@ -375,6 +375,8 @@ CERTIFIED_FILES = (
     "certified_preset6_cpu.json",
     "certified_preset4_affine_cpu.json",
     "certified_preset4_affine_seg1_cpu.json",
+    "certified_arms_cpu.json",
+    "certified_arms_box_cpu.json",
 )
 """Results of ``benchmarks/certified.py``, in the order the table lists them."""
 
@@ -388,7 +390,12 @@ def certified_table():
         for r in data["rows"]:
             if "diverged" in r:
                 step = r["diverged"].split("(step ")[1].split(",")[0]
-                pair = f"{r.get('enclosure', 'interval')} / {r.get('propagate', 'kernel')}"
+                # rows before b57b166 recorded only the options given; their default was
+                # the run's code's: interval/kernel then, but affine/carried from three
+                # joints at 58ac65e (certified_arms_cpu.json)
+                arms = name == "certified_arms_cpu.json"
+                default = ("affine", "carried") if arms else ("interval", "kernel")
+                pair = f"{r.get('enclosure', default[0])} / {r.get('propagate', default[1])}"
                 pair += f", {r['segments']} segment" if r.get("segments", 3) != 3 else ""
                 rows.append(
                     (f"`{r['case']}`", f"{duration} s", pair)
