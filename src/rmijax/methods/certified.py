@@ -57,8 +57,9 @@ tip-first ``U D U'`` solve on the same jets (:mod:`rmijax.methods.chain_jets`; t
 chain's constants, joint-frame products and inertias about the joint origins, rounded
 once to float64). Other models are refused with a ``NotImplementedError``. On a chain
 the default box of :func:`rmijax.robots.loaders.default_box` is too wide: the
-remainder diverges within the first 0.1 s (``docs/methods.md``); friction-only boxes
-and a tenth of the default box are certified.
+remainder diverges within the first 0.1 s. Over the first second of ``rmijax
+--robot``'s move a tenth of it is certified on all three arms, and its friction ranges
+alone on the UR5e and the Panda, not the iiwa14 (``docs/methods.md``, section 7).
 """
 
 from __future__ import annotations
@@ -481,7 +482,8 @@ def _evaluate(state, state_grad_d, sens2, th_value, noise_value, consts, layout=
         state: Interval (n, 2) values of the state; state_grad_d: Interval (n, 2, p)
             its derivative in ``d``; sens2: (n, 2, p, p) its second derivative.
         th_value: Interval (p,); noise_value: Interval (n, 2) or None.
-        consts: dict of nominal (p,), u, kp, kd (n,).
+        consts: dict of nominal (p,), u, kp, kd (n,), and with ``free`` fixed (all
+            parameters).
         layout: the model's (:func:`_layout`).
         free: None, or the indices of the uncertain parameters (static): then ``d``,
             ``th_value`` and the state's derivatives hold those only, and the certain
@@ -1036,7 +1038,6 @@ def _certify_box(
     diagnostics=False,
     enclosure="interval",
     propagate="kernel",
-    layout=None,
 ):
     """Split the box and certify every piece: ``(centers, los, his, pieces, kernel, tail)``.
 
@@ -1045,20 +1046,19 @@ def _certify_box(
     with ``diagnostics``.
     """
     noisy = bool(np.any(np.asarray(noise_lo) != 0) or np.any(np.asarray(noise_hi) != 0))
-    centers, los, his = _pieces(params, _split_counts(params, splits))
+    layout = _layout(params)
+    boxes = _pieces(params, _split_counts(params, splits))  # (centers, los, his)
     lo, hi = np.asarray(params.lo), np.asarray(params.hi)
     free = tuple(int(b) for b in np.flatnonzero(hi > lo))
     if len(free) == lo.size:  # every parameter uncertain: nothing to fold
-        free, fixed = None, None
+        free, fixed, variables = None, None, boxes
     else:  # certain parameters are constants, not variables of the jets
         fixed = jnp.asarray(lo)
-        centers, los, his = (a[:, list(free)] for a in (centers, los, his))
+        variables = tuple(a[:, list(free)] for a in boxes)
     pieces, kernel, tail = _certify(
         traj,
         params,
-        jnp.asarray(centers),
-        jnp.asarray(los),
-        jnp.asarray(his),
+        *(jnp.asarray(a) for a in variables),
         jnp.asarray(noise_lo),
         jnp.asarray(noise_hi),
         jnp.asarray(remainder_scale, jnp.asarray(noise_lo).dtype),
@@ -1073,7 +1073,6 @@ def _certify_box(
         fixed=fixed,
     )
     if free is not None:  # back to every parameter: the certain ones' coefficients are 0
-        centers, los, his = _pieces(params, _split_counts(params, splits))
         rows = np.asarray(free, dtype=np.int32)
         p = lo.size
         sens, sens2 = pieces["sens"], pieces["sens2"]
@@ -1081,7 +1080,7 @@ def _certify_box(
         full2 = jnp.zeros(sens2.shape[:-2] + (p, p), sens2.dtype)
         full2 = full2.at[..., rows[:, None], rows[None, :]].set(sens2)
         pieces = pieces | dict(sens=full, sens2=full2)
-    return centers, los, his, pieces, kernel, tail
+    return *boxes, pieces, kernel, tail
 
 
 # --------------------------------------------------------------------------
@@ -1164,7 +1163,7 @@ def certified_bounds(
         raise ValueError(
             "certified_bounds has no window: it certifies the whole run from x(0) = x_d(0)"
         )
-    layout = _layout(params)
+    _layout(params)  # refuses a model it cannot evaluate, before any other check
     if params.n_joints != traj.n_joints:
         raise ValueError(
             f"traj has {traj.n_joints} joints but params describes a {params.n_joints}-joint robot"
@@ -1195,7 +1194,6 @@ def certified_bounds(
         remainder_scale,
         enclosure=enclosure,
         propagate=propagate,
-        layout=layout,
     )
     lower = jnp.min(pieces["lower"], axis=0)
     upper = jnp.max(pieces["upper"], axis=0)
