@@ -41,6 +41,8 @@ Examples::
         --cold-only --json benchmarks/results/certified_preset4_affine_cpu.json
     PYTHONPATH=src python3 benchmarks/certified.py --cases ur5e_friction ur5e_tenth \\
         --duration 1 --json benchmarks/results/certified_arms_cpu.json
+    PYTHONPATH=src python3 benchmarks/certified.py --cases panda_friction --duration 1 \\
+        --split 'coulomb[joint4]=2' --cold-only --json out.json
 
 The ``<arm>_friction``, ``<arm>_tenth`` and ``<arm>_box`` cases (``ur5e``, ``panda``,
 ``iiwa14``) are the arm of :func:`rmijax.load_robot` on the first seconds of the
@@ -191,6 +193,7 @@ def run_case(name, duration, draws, every, splits, options=None, warm=True):
         case=name,
         n=params.n_joints,
         pieces=int(cert.n_pieces),
+        **(dict(splits=splits) if isinstance(splits, dict) else {}),
         enclosure=cert.enclosure,
         propagate=cert.propagate,
         segments=int(cert.segments),
@@ -467,6 +470,12 @@ def main(argv=None):
     parser.add_argument("--every", type=float, default=0.5, help="scored times, every s")
     parser.add_argument("--splits", type=int, default=None, help="mass splits (default: auto)")
     parser.add_argument(
+        "--split",
+        nargs="+",
+        metavar="NAME=PARTS",
+        help="parts per named parameter, e.g. 'coulomb[joint4]=2' (instead of --splits)",
+    )
+    parser.add_argument(
         "--enclosure", choices=("interval", "affine"), default=None, help="default: auto"
     )
     parser.add_argument(
@@ -489,6 +498,13 @@ def main(argv=None):
         "--checker", action="store_true", help="run the certificate checker on every pair"
     )
     args = parser.parse_args(argv)
+    if args.split:
+        if args.splits is not None:
+            parser.error("give --splits or --split, not both")
+        try:
+            args.splits = {k: int(v) for k, v in (item.split("=") for item in args.split)}
+        except ValueError:
+            parser.error(f"--split takes NAME=PARTS items, got {args.split}")
     if args.checker:
         result = run_checker()
         if args.json:

@@ -416,6 +416,26 @@ def test_dispatcher_and_refusals(pendulum):
         )
 
 
+def test_splits_by_parameter_name():
+    """A dict of parts per parameter name cuts only the named ranges; the pieces tile the box."""
+    from rmijax.methods.certified import _pieces, _split_counts
+
+    params = rmijax.paper_pendulum()
+    counts = _split_counts(params, {"l1": 3})
+    assert counts == (1, 3)
+    assert _split_counts(params, {"m1": 2, "l1": 3}) == _split_counts(params, (2, 3))
+    centers, lo, hi = _pieces(params, counts)
+    assert centers.shape == (3, 2)
+    np.testing.assert_array_equal(lo[:, 0], params.lo[0])  # m1 not cut
+    np.testing.assert_array_equal(hi[:, 0], params.hi[0])
+    assert lo[0, 1] == params.lo[1] and hi[-1, 1] == params.hi[1]
+    np.testing.assert_array_equal(lo[1:, 1], hi[:-1, 1])  # l1 cut in three, no gap
+    with pytest.raises(ValueError, match=r"unknown parameters \['coulomb\[joint4\]'\]"):
+        _split_counts(params, {"coulomb[joint4]": 2})
+    with pytest.raises(ValueError, match="ints >= 1"):
+        _split_counts(params, {"l1": 0})
+
+
 @pytest.mark.slow
 def test_noise_through_the_controller():
     params = rmijax.paper_pendulum()

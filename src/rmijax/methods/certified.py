@@ -1020,9 +1020,21 @@ def _split_counts(params, splits):
             uncertain = np.asarray(params.hi) > np.asarray(params.lo)
             return tuple(int(splits) if b < units and uncertain[b] else 1 for b in range(p))
         return tuple(int(splits) if b < n else 1 for b in range(p))
+    if isinstance(splits, dict):  # parts per named parameter, 1 for the others
+        names = tuple(params.model.param_names)
+        unknown = [name for name in splits if name not in names]
+        if unknown:
+            raise ValueError(
+                f"splits names unknown parameters {unknown}: use names from "
+                f"params.model.param_names, {list(names)}"
+            )
+        splits = [splits.get(name, 1) for name in names]
     counts = tuple(int(s) for s in splits)
     if len(counts) != p or any(s < 1 for s in counts):
-        raise ValueError(f"splits must be an int >= 1 or {p} ints >= 1, got {splits!r}")
+        raise ValueError(
+            f"splits must be an int >= 1, {p} ints >= 1 or a dict of parameter names to "
+            f"ints >= 1, got {splits!r}"
+        )
     return counts
 
 
@@ -1118,10 +1130,11 @@ def certified_bounds(
             the band, and their effect through the controller is enclosed.
         splits: 1 (no split), an int ``s`` (each mass range in ``s`` equal parts:
             ``s^n`` pieces; a chain's uncertain mass scales and payload), ``p`` ints
-            (parts per parameter), or None: on the planar arm 4 up to two joints, 3 up
-            to four (81 pieces at four joints: fewer diverge with the default
-            enclosure), 2 above; on a chain 1. The band is the union of the pieces'
-            bands.
+            (parts per parameter), a dict of parts per parameter name (others 1, e.g.
+            ``{"coulomb[joint4]": 2}``; names from ``params.model.param_names``), or
+            None: on the planar arm 4 up to two joints, 3 up to four (81 pieces at four
+            joints: fewer diverge with the default enclosure), 2 above; on a chain 1.
+            The band is the union of the pieces' bands.
         kernel_steps: ``M``, powers of ``A`` applied exactly to the remainder.
         segments: ``J``, radial segments of the Lagrange remainder: the Hessian
             is enclosed over the boxes ``(j / J) Z``, weighted by
