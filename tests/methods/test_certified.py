@@ -305,7 +305,7 @@ def test_four_links_contain_every_corner_and_draws():
     assert np.all(ratio >= 1.0 - 1e-9)
     assert np.median(ratio) <= 1.5
     assert check_certificate(cert, traj, params, steps=2, pieces=[40]).ok  # ~70 s
-    with pytest.raises(rmijax.DivergedError):
+    with pytest.raises(rmijax.DivergedError, match=r"splits=\{'m\d': 2\}"):
         certified_bounds(traj, params, enclosure="interval", propagate="kernel")
 
 
@@ -434,6 +434,42 @@ def test_splits_by_parameter_name():
         _split_counts(params, {"coulomb[joint4]": 2})
     with pytest.raises(ValueError, match="ints >= 1"):
         _split_counts(params, {"l1": 0})
+
+
+def test_split_ranking_equals_finite_differences():
+    """``split_ranking``'s scores equal a plain loop: central differences in each parameter
+    of ``gv``'s state Jacobian along the desired run, largest row sum, times the half-range."""
+    from rmijax.control import coupled_perturbation
+    from rmijax.methods.certified import split_ranking
+
+    params = rmijax.paper_arm2()
+    traj = rmijax.trajectory(["sine", "ramp"], duration=0.2)
+    ranked = split_ranking(traj, params)
+    lo, hi, nominal = (np.asarray(a) for a in (params.lo, params.hi, params.nominal))
+    names = params.model.param_names
+    assert sorted(name for name, _ in ranked) == sorted(np.asarray(names)[hi > lo])
+    assert [score for _, score in ranked] == sorted((score for _, score in ranked), reverse=True)
+
+    def state_jacobian(th, x, u):
+        def gv(xx):
+            return coupled_perturbation(
+                params.model, th, params.nominal, xx[:, 0], xx[:, 1], u, traj.kp, traj.kd
+            )
+
+        return np.asarray(jax.jacfwd(gv)(x))  # (n, n, 2)
+
+    for name, score in ranked:
+        b = names.index(name)
+        h = 1e-5 * max(1.0, abs(nominal[b]))
+        worst = 0.0
+        for k in range(traj.n_steps):
+            up_, down = nominal.copy(), nominal.copy()
+            up_[b] += h
+            down[b] -= h
+            x, u = traj.x_n[k], traj.u_d[k]
+            diff = (state_jacobian(up_, x, u) - state_jacobian(down, x, u)) / (2 * h)
+            worst = max(worst, float(np.abs(diff).sum(axis=(1, 2)).max()))
+        np.testing.assert_allclose(score, 0.5 * (hi[b] - lo[b]) * worst, rtol=1e-6)
 
 
 @pytest.mark.slow
