@@ -553,6 +553,8 @@ def main(argv=None):
         except DivergedError as err:  # the bound blew up: record where, and go on
             seconds = round(time.perf_counter() - started, 2)
             row = dict(case=name, diverged=str(err), seconds=seconds)
+            if isinstance(args.splits, dict):
+                row["splits"] = args.splits
             n = CASES[name][0]().n_joints  # the pair the default chooses for it
             row |= dict(
                 enclosure=_choice("enclosure", args.enclosure, ("interval", "affine"), n),
