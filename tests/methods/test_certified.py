@@ -305,7 +305,7 @@ def test_four_links_contain_every_corner_and_draws():
     assert np.all(ratio >= 1.0 - 1e-9)
     assert np.median(ratio) <= 1.5
     assert check_certificate(cert, traj, params, steps=2, pieces=[40]).ok  # ~70 s
-    with pytest.raises(rmijax.DivergedError, match=r"splits=\{'m\d': 2\}"):
+    with pytest.raises(rmijax.DivergedError, match=r"'m\d' in 6 parts"):
         certified_bounds(traj, params, enclosure="interval", propagate="kernel")
 
 
@@ -470,6 +470,9 @@ def test_split_ranking_equals_finite_differences():
             diff = (state_jacobian(up_, x, u) - state_jacobian(down, x, u)) / (2 * h)
             worst = max(worst, float(np.abs(diff).sum(axis=(1, 2)).max()))
         np.testing.assert_allclose(score, 0.5 * (hi[b] - lo[b]) * worst, rtol=1e-6)
+    cut = dict(split_ranking(traj, params, {ranked[0][0]: 4}))  # a piece's range: a quarter
+    np.testing.assert_allclose(cut[ranked[0][0]], ranked[0][1] / 4, rtol=1e-12)
+    assert cut[ranked[1][0]] == ranked[1][1]
 
 
 @pytest.mark.slow

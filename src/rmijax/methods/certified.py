@@ -59,7 +59,9 @@ once to float64). Other models are refused with a ``NotImplementedError``. On a 
 the default box of :func:`rmijax.robots.loaders.default_box` is too wide: the
 remainder diverges within the first 0.1 s. Over the first second of ``rmijax
 --robot``'s move a tenth of it is certified on all three arms, and its friction ranges
-alone on the UR5e and the Panda, not the iiwa14 (``docs/methods.md``, section 7).
+alone on the UR5e and the Panda (the Panda's within 1.5x of the worst case once cut in
+two along ``coulomb[joint4]``, the range :func:`split_ranking` puts first), not the
+iiwa14 (``docs/methods.md``, section 7).
 """
 
 from __future__ import annotations
@@ -1040,22 +1042,23 @@ def _split_counts(params, splits):
     return counts
 
 
-def split_ranking(traj: Trajectory, params: UncertainRobot) -> list[tuple[str, float]]:
+def split_ranking(traj: Trajectory, params: UncertainRobot, splits=1) -> list[tuple[str, float]]:
     """The uncertain parameters, ranked by how much their range moves the nominal loop.
 
     A hint for ``splits``, not part of any certificate. For parameter ``b`` the score
-    is ``r_b max_k max_i sum_j |d/dth_b d gv_i / d x_j|``: the half-width ``r_b`` of its
-    range times the largest row sum of the derivative of ``gv``'s state Jacobian along
-    the desired run ``x_n(k)``, at the nominal parameters (rad/s^2 per rad or rad/s).
+    is ``r_b max_k max_i sum_j |d/dth_b d gv_i / d x_j|``: the half-width ``r_b`` of a
+    piece's range (the range over its parts in ``splits``) times the largest row sum of
+    the derivative of ``gv``'s state Jacobian along the desired run ``x_n(k)``, at the
+    nominal parameters (rad/s^2 per rad or rad/s).
     This is how far the parameter's range can move the closed loop's state Jacobian
     away from the nominal one, the term that makes the remainder grow or stop
-    contracting (e.g. a Coulomb friction range through a joint the motion holds at
-    rest, where the smooth sign is steepest, and through ``M^-1``'s coupling onto light
-    joints).
+    contracting (e.g. a joint's Coulomb friction range where the joint is at rest and
+    the smooth sign is steepest, acting through ``M^-1``'s coupling on light joints).
 
     Args:
         traj: the desired motion, gains and step.
         params: the robot and its box (float64).
+        splits: the cuts already made, as :func:`certified_bounds` takes them.
 
     Returns:
         ``[(name, score), ...]`` for the parameters with ``lo < hi``, largest score first.
@@ -1069,8 +1072,9 @@ def split_ranking(traj: Trajectory, params: UncertainRobot) -> list[tuple[str, f
     mixed = jax.jit(jax.vmap(jax.jacfwd(jax.jacfwd(gv, 0), 1), (0, None, 0)))
     jac = np.abs(np.asarray(mixed(traj.x_n[:-1], nominal, traj.u_d[:-1])))  # (T, n, n, 2, p)
     rows = jac.sum(axis=(2, 3)).max(axis=(0, 1))  # (p,)
+    counts = np.asarray(_split_counts(params, splits))
     radius = 0.5 * (np.asarray(params.hi) - np.asarray(params.lo))
-    score = radius * rows
+    score = radius / counts * rows
     names = params.model.param_names
     ranked = sorted(np.flatnonzero(radius > 0), key=lambda b: -score[b])
     return [(names[b], float(score[b])) for b in ranked]
@@ -1251,13 +1255,15 @@ def certified_bounds(
     where = _checks.first_non_finite(upper, lower)
     if where is not None:
         step, joint, sensor = where
-        name = split_ranking(traj, params)[0][0]
+        name = split_ranking(traj, params, splits)[0][0]
+        parts = 2 * _split_counts(params, splits)[params.model.param_names.index(name)]
         raise DivergedError.at(
             where,
             f"certified bounds are not finite (step {step}, joint {joint} "
             f"{DivergedError.SENSORS[sensor]}): the remainder bound diverged. Narrow the "
-            f"parameter box, split it (e.g. splits={{{name!r}: 2}}: the range that moves "
-            "the nominal loop most, see split_ranking) or use stiffer gains.",
+            f"parameter box, split it (e.g. {name!r} in {parts} parts: the range that "
+            "moves the nominal loop most per piece, see split_ranking) or use stiffer "
+            "gains.",
         )
     bounds = Bounds(lower=lower, upper=upper, nominal=traj.x_n, crossed=upper < lower, dt=traj.dt)
     certificate = Certificate(
