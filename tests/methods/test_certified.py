@@ -473,6 +473,10 @@ def test_split_ranking_equals_finite_differences():
     cut = dict(split_ranking(traj, params, {ranked[0][0]: 4}))  # a piece's range: a quarter
     np.testing.assert_allclose(cut[ranked[0][0]], ranked[0][1] / 4, rtol=1e-12)
     assert cut[ranked[1][0]] == ranked[1][1]
+    with pytest.raises(ValueError, match="joints"):
+        split_ranking(rmijax.trajectory(["sine"], duration=0.1), params)
+    with pytest.raises(TypeError, match="params"):
+        split_ranking(traj, params.model)
 
 
 @pytest.mark.slow

@@ -1063,6 +1063,11 @@ def split_ranking(traj: Trajectory, params: UncertainRobot, splits=1) -> list[tu
     Returns:
         ``[(name, score), ...]`` for the parameters with ``lo < hi``, largest score first.
     """
+    check_types(traj, params)
+    if params.n_joints != traj.n_joints:
+        raise ValueError(
+            f"traj has {traj.n_joints} joints but params describes a {params.n_joints}-joint robot"
+        )
     model, nominal = params.model, params.nominal
     kp, kd = traj.kp, traj.kd
 
@@ -1255,15 +1260,20 @@ def certified_bounds(
     where = _checks.first_non_finite(upper, lower)
     if where is not None:
         step, joint, sensor = where
-        name = split_ranking(traj, params, splits)[0][0]
-        parts = 2 * _split_counts(params, splits)[params.model.param_names.index(name)]
+        ranked = split_ranking(traj, params, splits)
+        hint = "splits=..."
+        if ranked:
+            name = ranked[0][0]
+            parts = 2 * _split_counts(params, splits)[params.model.param_names.index(name)]
+            hint = (
+                f"e.g. {name!r} in {parts} parts: the range that moves the nominal loop "
+                "most per piece, see split_ranking"
+            )
         raise DivergedError.at(
             where,
             f"certified bounds are not finite (step {step}, joint {joint} "
             f"{DivergedError.SENSORS[sensor]}): the remainder bound diverged. Narrow the "
-            f"parameter box, split it (e.g. {name!r} in {parts} parts: the range that "
-            "moves the nominal loop most per piece, see split_ranking) or use stiffer "
-            "gains.",
+            f"parameter box, split it ({hint}) or use stiffer gains.",
         )
     bounds = Bounds(lower=lower, upper=upper, nominal=traj.x_n, crossed=upper < lower, dt=traj.dt)
     certificate = Certificate(
