@@ -377,6 +377,7 @@ CERTIFIED_FILES = (
     "certified_preset4_affine_seg1_cpu.json",
     "certified_arms_cpu.json",
     "certified_arms_box_cpu.json",
+    "certified_arms_split_cpu.json",
 )
 """Results of ``benchmarks/certified.py``, in the order the table lists them."""
 
@@ -397,17 +398,19 @@ def certified_table():
                 default = ("affine", "carried") if arms else ("interval", "kernel")
                 pair = f"{r.get('enclosure', default[0])} / {r.get('propagate', default[1])}"
                 pair += f", {r['segments']} segment" if r.get("segments", 3) != 3 else ""
+                cuts = ", ".join(f"`{k}` in {v}" for k, v in r.get("splits", {}).items())
                 rows.append(
-                    (f"`{r['case']}`", f"{duration} s", pair)
+                    (f"`{r['case']}`" + (f" ({cuts})" if cuts else ""), f"{duration} s", pair)
                     + (f"diverged at step {step}",)
                     + ("-",) * 5
                     + (f"{r['seconds']:.1f}", "-")
                 )
                 continue
             warm = r.get("seconds_warm")
+            cuts = ", ".join(f"`{k}` in {v}" for k, v in r.get("splits", {}).items())
             rows.append(
                 (
-                    f"`{r['case']}`",
+                    f"`{r['case']}`" + (f" ({cuts})" if cuts else ""),
                     f"{duration} s",
                     f"{r.get('enclosure', 'interval')} / {r.get('propagate', 'kernel')}"
                     + (f", {r['segments']} segment" if r.get("segments", 3) != 3 else ""),
