@@ -305,7 +305,9 @@ def test_four_links_contain_every_corner_and_draws():
     assert np.all(ratio >= 1.0 - 1e-9)
     assert np.median(ratio) <= 1.5
     assert check_certificate(cert, traj, params, steps=2, pieces=[40]).ok  # ~70 s
-    with pytest.raises(rmijax.DivergedError, match=r"'m\d' in 6 parts"):
+    # the masses are cut in 3 by default, so the uncut l2 moves the loop most per piece
+    # (split_ranking: 73.6 against m3's 153.5 / 3)
+    with pytest.raises(rmijax.DivergedError, match=r"'l2' in 2 parts"):
         certified_bounds(traj, params, enclosure="interval", propagate="kernel")
 
 
