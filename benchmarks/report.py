@@ -388,32 +388,31 @@ def certified_table():
     for name in CERTIFIED_FILES:
         data = _load(name)
         duration = data["meta"]["command"].split("--duration ")[1].split()[0]
+        # rows before b57b166 recorded only the options given, so a diverged one may lack
+        # its pair: the run's code's default, interval/kernel then, but affine/carried
+        # from three joints at 58ac65e (certified_arms_cpu.json)
+        arms = name == "certified_arms_cpu.json"
+        default = ("affine", "carried") if arms else ("interval", "kernel")
         for r in data["rows"]:
+            cuts = ", ".join(f"`{k}` in {v}" for k, v in r.get("splits", {}).items())
+            case = f"`{r['case']}`" + (f" ({cuts})" if cuts else "")
+            pair = f"{r.get('enclosure', default[0])} / {r.get('propagate', default[1])}"
+            pair += f", {r['segments']} segment" if r.get("segments", 3) != 3 else ""
             if "diverged" in r:
                 step = r["diverged"].split("(step ")[1].split(",")[0]
-                # rows before b57b166 recorded only the options given; their default was
-                # the run's code's: interval/kernel then, but affine/carried from three
-                # joints at 58ac65e (certified_arms_cpu.json)
-                arms = name == "certified_arms_cpu.json"
-                default = ("affine", "carried") if arms else ("interval", "kernel")
-                pair = f"{r.get('enclosure', default[0])} / {r.get('propagate', default[1])}"
-                pair += f", {r['segments']} segment" if r.get("segments", 3) != 3 else ""
-                cuts = ", ".join(f"`{k}` in {v}" for k, v in r.get("splits", {}).items())
                 rows.append(
-                    (f"`{r['case']}`" + (f" ({cuts})" if cuts else ""), f"{duration} s", pair)
+                    (case, f"{duration} s", pair)
                     + (f"diverged at step {step}",)
                     + ("-",) * 5
                     + (f"{r['seconds']:.1f}", "-")
                 )
                 continue
             warm = r.get("seconds_warm")
-            cuts = ", ".join(f"`{k}` in {v}" for k, v in r.get("splits", {}).items())
             rows.append(
                 (
-                    f"`{r['case']}`" + (f" ({cuts})" if cuts else ""),
+                    case,
                     f"{duration} s",
-                    f"{r.get('enclosure', 'interval')} / {r.get('propagate', 'kernel')}"
-                    + (f", {r['segments']} segment" if r.get("segments", 3) != 3 else ""),
+                    pair,
                     f"{r['samples_outside']} of {r['samples']}",
                     f"{r['maximisers_outside']} of {r['maximisers']}",
                     f"{r['attack_outside']} of {r['attack_runs']}",

@@ -1080,7 +1080,7 @@ def split_ranking(traj: Trajectory, params: UncertainRobot, splits=1) -> list[tu
     counts = np.asarray(_split_counts(params, splits))
     radius = 0.5 * (np.asarray(params.hi) - np.asarray(params.lo))
     score = radius / counts * rows
-    names = params.model.param_names
+    names = model.param_names
     ranked = sorted(np.flatnonzero(radius > 0), key=lambda b: -score[b])
     return [(names[b], float(score[b])) for b in ranked]
 
@@ -1260,11 +1260,12 @@ def certified_bounds(
     where = _checks.first_non_finite(upper, lower)
     if where is not None:
         step, joint, sensor = where
-        ranked = split_ranking(traj, params, splits)
+        counts = _split_counts(params, splits)
+        ranked = split_ranking(traj, params, counts)
         hint = "splits=..."
         if ranked:
             name = ranked[0][0]
-            parts = 2 * _split_counts(params, splits)[params.model.param_names.index(name)]
+            parts = 2 * counts[params.model.param_names.index(name)]
             hint = (
                 f"e.g. {name!r} in {parts} parts: the range that moves the nominal loop "
                 "most per piece, see split_ranking"
