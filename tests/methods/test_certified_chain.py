@@ -55,10 +55,13 @@ def _point(params, seed):
 
 @pytest.mark.parametrize("name", ARMS)
 def test_chain_jets_equal_the_model_at_a_point(name):
-    """The jets' value (body-frame Newton-Euler, composite inertias and the tip-first
-    ``U D U'`` solve, in the checker's mpmath intervals) equals ``gv`` of the float64
-    model (:func:`rmijax.load_robot`'s Featherstone recursions in the base frame) at a
-    random state, parameter and feed-forward, noise through the controller included."""
+    """The jets' value (body-frame Newton-Euler, composite inertias, and the tip-first
+    ``U D U'`` solve or the preconditioned elimination, in the checker's mpmath
+    intervals) equals ``gv`` of the float64 model (:func:`rmijax.load_robot`'s
+    Featherstone recursions in the base frame) at a random state, parameter and
+    feed-forward, noise through the controller included. The preconditioned solve gives
+    the same value for any invertible ``P``: ``M^-1`` at the point, the identity, that
+    inverse with every entry moved up to 20 %."""
     params = rmijax.load_robot(name, **_box(name, 1.0))
     layout = params.model.structure.layout
     n = params.n_joints
@@ -73,7 +76,10 @@ def test_chain_jets_equal_the_model_at_a_point(name):
         grad, hess = np.full(1, zero, dtype=object), np.full((1, 1), zero, dtype=object)
         return [Jet(iv.mpf(float(v)), grad, hess, backend) for v in values]
 
-    for noise in (None, eta):
+    inverse = np.linalg.inv(np.asarray(params.model.mass_matrix(q, th)))
+    perturbed = inverse * np.random.default_rng(3).uniform(0.8, 1.2, size=(n, n))
+    solves = [None, inverse, np.eye(n), perturbed]
+    for noise, precond in [(noise, p) for noise in (None, eta) for p in solves]:
         extra = None if noise is None else (jets(noise[:, 0]), jets(noise[:, 1]))
         gv = chain_perturbation_jets(
             layout,
@@ -85,6 +91,7 @@ def test_chain_jets_equal_the_model_at_a_point(name):
             jets(kp),
             jets(kd),
             extra,
+            None if precond is None else [jets(row) for row in precond],
         )
         lower = np.array([float(g.v.a) for g in gv])
         upper = np.array([float(g.v.b) for g in gv])
@@ -103,6 +110,9 @@ def test_chain_jets_derivatives_equal_autodiff(name):
     kp, kd = np.full(n, 100.0), np.full(n, 20.0)
     x = np.stack([q, qd], axis=1)
     consts = dict(nominal=params.nominal, u=jnp.asarray(u), kp=jnp.asarray(kp), kd=jnp.asarray(kd))
+    consts["precond"] = certified._preconditioner(
+        params.model.mass_matrix, jnp.asarray(x), jnp.asarray(th), None, None
+    )
     value, grad, hess = certified._evaluate(
         Interval(jnp.asarray(x)),
         Interval(jnp.zeros((n, 2, p))),
@@ -120,10 +130,13 @@ def test_chain_jets_derivatives_equal_autodiff(name):
     z0 = jnp.concatenate([jnp.zeros(p), jnp.asarray(x).reshape(-1)])
     expected = (gv(z0), jax.jacfwd(gv)(z0), jax.hessian(gv)(z0))
     for got, want in zip((value, grad, hess), expected, strict=True):
-        want = np.asarray(want)
-        scale = 1e-9 * (1.0 + np.max(np.abs(want)))
-        assert np.all(np.asarray(got.hi - got.lo) < scale)
-        np.testing.assert_allclose(np.asarray(got.mid()), want, rtol=0, atol=scale)
+        # the enclosure holds autodiff's value (up to autodiff's own rounding) and is
+        # narrow: the preconditioned solve's products ``P M`` cancel terms of size
+        # ``|P| |M|``, so its point enclosures are ~cond(M) eps wide, not eps
+        want, size = np.asarray(want), 1.0 + np.max(np.abs(np.asarray(want)))
+        assert np.all(np.asarray(got.hi - got.lo) < 1e-6 * size)
+        assert np.all(np.asarray(got.lo) <= want + 1e-11 * size)
+        assert np.all(np.asarray(got.hi) >= want - 1e-11 * size)
 
 
 def test_tanh_encloses_in_every_backend():

@@ -452,9 +452,11 @@ def _perturbation_tape(layout, n, p, noisy):
     output rows.
 
     Leaves, in order: ``q (n), qd (n), th (p)``, with noise ``eq (n), eqd (n)``,
-    then the constants ``nominal (p), u (n), kp (n), kd (n)``.
+    then the constants ``nominal (p), u (n), kp (n), kd (n)``, and for a chain the
+    preconditioner ``P (n * n)`` of its solve, row by row
+    (:func:`rmijax.methods.chain_jets.chain_perturbation_jets`).
     """
-    tape = Tape(_tape_leaves(n, p, noisy))
+    tape = Tape(_tape_leaves(n, p, noisy, layout is not None))
     leaves = tape.leaves()
     take = iter(leaves)
     q, qd = [next(take) for _ in range(n)], [next(take) for _ in range(n)]
@@ -464,13 +466,35 @@ def _perturbation_tape(layout, n, p, noisy):
         noise = ([next(take) for _ in range(n)], [next(take) for _ in range(n)])
     nominal = [next(take) for _ in range(p)]
     u, kp, kd = ([next(take) for _ in range(n)] for _ in range(3))
-    gv = perturbation_jets(layout)(q, qd, th, nominal, u, kp, kd, noise)
+    if layout is None:
+        gv = planar_perturbation_jets(q, qd, th, nominal, u, kp, kd, noise)
+    else:
+        precond = [[next(take) for _ in range(n)] for _ in range(n)]
+        gv = chain_perturbation_jets(layout, q, qd, th, nominal, u, kp, kd, noise, precond)
     return tape.arrays(), tuple(node.index for node in gv)
 
 
-def _tape_leaves(n, p, noisy):
+def _tape_leaves(n, p, noisy, chain=False):
     """How many leaves :func:`_perturbation_tape` has for ``n`` joints, ``p`` parameters."""
-    return 2 * n + p + (2 * n if noisy else 0) + p + 3 * n
+    return 2 * n + p + (2 * n if noisy else 0) + p + 3 * n + (n * n if chain else 0)
+
+
+def _constants(consts, layout):
+    """The tape's constant leaves: nominal, u, kp, kd, and a chain's preconditioner."""
+    parts = [consts["nominal"], consts["u"], consts["kp"], consts["kd"]]
+    if layout is not None:
+        if consts.get("precond") is None:
+            raise ValueError("a chain's tape needs consts['precond'] (see _preconditioner)")
+        parts.append(jnp.asarray(consts["precond"]).reshape(-1))
+    return jnp.concatenate(parts)
+
+
+def _preconditioner(mass_matrix, xc, center, fixed, free):
+    """``M(q_c; th_c)^-1`` in float64: the chain solve's preconditioner at a centre state.
+    Any matrix is sound there (see ``chain_perturbation_jets``); this one keeps its
+    pivots near 1."""
+    th = center if free is None else fixed.at[np.asarray(free, dtype=np.int32)].set(center)
+    return jnp.linalg.inv(mass_matrix(xc[:, 0], th))
 
 
 def _cat(*parts):
@@ -486,8 +510,8 @@ def _evaluate(state, state_grad_d, sens2, th_value, noise_value, consts, layout=
         state: Interval (n, 2) values of the state; state_grad_d: Interval (n, 2, p)
             its derivative in ``d``; sens2: (n, 2, p, p) its second derivative.
         th_value: Interval (p,); noise_value: Interval (n, 2) or None.
-        consts: dict of nominal (p,), u, kp, kd (n,), and with ``free`` fixed (all
-            parameters).
+        consts: dict of nominal (p,), u, kp, kd (n,), with ``free`` fixed (all
+            parameters), for a chain precond (n, n) (:func:`_preconditioner`).
         layout: the model's (:func:`_layout`).
         free: None, or the indices of the uncertain parameters (static): then ``d``,
             ``th_value`` and the state's derivatives hold those only, and the certain
@@ -521,7 +545,7 @@ def _evaluate(state, state_grad_d, sens2, th_value, noise_value, consts, layout=
         values.append(Interval(swap(noise_value.lo), swap(noise_value.hi)))
         grads.append(Interval(swap(eye[p + 2 * n :].reshape(n, 2, m))))
         hessians.append(Interval(jnp.zeros((2 * n, m, m), dtype)))
-    constants = jnp.concatenate([consts["nominal"], consts["u"], consts["kp"], consts["kd"]])
+    constants = _constants(consts, layout)
     values.append(Interval(constants))
     grads.append(Interval(jnp.zeros((constants.shape[0], m), dtype)))
     hessians.append(Interval(jnp.zeros((constants.shape[0], m, m), dtype)))
@@ -597,7 +621,7 @@ def _evaluate_affine(
         values.append(exact(eta_c, unit_eta * rad[None], eta_c))
         grads.append(AffineForm.point(unit_eta, m))
         hess.append(jnp.zeros((2 * n, m, m), dtype))
-    constants = jnp.concatenate([consts["nominal"], consts["u"], consts["kp"], consts["kd"]])
+    constants = _constants(consts, layout)
     values.append(AffineForm.point(constants, m))
     grads.append(AffineForm.point(jnp.zeros((constants.shape[0], m), dtype), m))
     hess.append(jnp.zeros((constants.shape[0], m, m), dtype))
@@ -631,6 +655,7 @@ def _certify_piece(
     layout=None,
     free=None,
     fixed=None,
+    mass_matrix=None,
 ):
     """The Taylor-model induction over the whole run for one piece of the box.
 
@@ -667,6 +692,8 @@ def _certify_piece(
     def step(carry, u):
         xc, sens, sens2, buf, tail_max, rhat, gens, gens_d, k = carry
         consts = dict(nominal=nominal, u=u, kp=kp, kd=kd, fixed=fixed)
+        if layout is not None:
+            consts["precond"] = _preconditioner(mass_matrix, xc, center, fixed, free)
         # --- the centre: coefficients of the next Taylor model ---------------
         zero_noise = Interval(jnp.zeros((n, 2), dtype)) if noisy else None
         g0, g1, g2 = _evaluate(
@@ -949,6 +976,7 @@ def _certify(
         layout=layout,
         free=free,
         fixed=fixed,
+        mass_matrix=params.model.mass_matrix,
     )
     n, p = traj.n_joints, params.n_params
     if enclosure == "affine":
@@ -972,7 +1000,7 @@ def _affine_batch(layout, n, p, variables, noisy):
     the cache."""
     tape, _ = _perturbation_tape(layout, n, p, noisy)
     m = variables + 2 * n + (2 * n if noisy else 0)  # (d, R[, eta]): uncertain ``d`` only
-    rows = _tape_leaves(n, p, noisy) + tape[0].shape[0]
+    rows = _tape_leaves(n, p, noisy, layout is not None) + tape[0].shape[0]
     per_piece = rows * (m * (m + 1) // 2 + m + 1) * (m + 2) * 8
     return max(1, _AFFINE_BUFFER // per_piece)
 

@@ -292,6 +292,47 @@ def _solve_tip_first(matrix, rhs):
     return x
 
 
+def _solve_preconditioned(matrix, rhs, precond):
+    """Solve ``M x = rhs`` as ``(P M) x = P rhs`` by Gaussian elimination without pivoting.
+
+    ``P`` (``n x n`` constants of the backend) is any matrix: the solution is the same
+    for every invertible ``P``, so it needs no proof; with ``P`` close to ``M^-1`` at the
+    centre of an enclosure, ``P M`` is close to the identity over it, its pivots stay
+    near 1 and the enclosure keeps the dependence on the parameters that the
+    elimination of ``M`` itself loses over a wide box (where a pivot's enclosure can
+    hold 0). A singular ``P`` gives a pivot that holds 0: an infinite enclosure, never
+    a wrong one.
+    """
+    n = len(rhs)
+    a = [
+        [_sum([_u.mul(precond[i][k], matrix[k][j]) for k in range(n)]) for j in range(n)]
+        for i in range(n)
+    ]
+    b = [_sum([_u.mul(precond[i][k], rhs[k]) for k in range(n)]) for i in range(n)]
+    inverse = [None] * n
+    for k in range(n):
+        inverse[k] = 1.0 / a[k][k]
+        for i in range(k + 1, n):
+            factor = _u.mul(a[i][k], inverse[k])
+            for j in range(k + 1, n):
+                a[i][j] = _u.sub(a[i][j], _u.mul(factor, a[k][j]))
+            b[i] = _u.sub(b[i], _u.mul(factor, b[k]))
+    x = [None] * n
+    for i in range(n - 1, -1, -1):
+        total = b[i]
+        for j in range(i + 1, n):
+            total = _u.sub(total, _u.mul(a[i][j], x[j]))
+        x[i] = _u.mul(total, inverse[i])
+    return x
+
+
+def _sum(terms):
+    total = terms[0]
+    for term in terms[1:]:
+        total = _u.add(total, term)
+    return total
+
+
 def _smooth_sign(qd):
     return (qd * (1.0 / COULOMB_VELOCITY)).tanh()
 
@@ -320,7 +361,9 @@ def _nominal_torque(layout, local, revolute, q, qd, nominal, u, kp, kd):
     return out
 
 
-def chain_perturbation_jets(layout: ChainLayout, q, qd, th, nominal, u, kp, kd, noise=None):
+def chain_perturbation_jets(
+    layout: ChainLayout, q, qd, th, nominal, u, kp, kd, noise=None, precond=None
+):
     """``gv = qdd - v`` of a spatial chain on jets: a list of ``n`` jets.
 
     Args:
@@ -360,4 +403,6 @@ def chain_perturbation_jets(layout: ChainLayout, q, qd, th, nominal, u, kp, kd, 
         true = _nominal_torque(layout, local, revolute, q, qd, nominal, u, kp, kd)
         f = [f[j] + measured[j] - true[j] for j in range(n)]
     matrix = _mass_matrix(local, revolute, joints, th[:count], chain.armature)
+    if precond is not None:
+        return _solve_preconditioned(matrix, f, precond)
     return _solve_tip_first(matrix, f)
