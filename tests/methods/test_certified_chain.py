@@ -280,9 +280,7 @@ def test_affine_hessian_over_the_panda_mass_and_payload_box():
     xc = jnp.asarray(np.stack([q, qd], axis=1))
     rhat = jnp.full((n, 2), 1e-3)
     consts = dict(nominal=center, u=jnp.asarray(u), kp=jnp.asarray(kp), kd=jnp.asarray(kd))
-    consts["precond"] = certified._preconditioner(
-        params.model.mass_matrix, xc, center, None, None
-    )
+    consts["precond"] = certified._preconditioner(params.model.mass_matrix, xc, center, None, None)
     zeros = jnp.zeros((n, 2, p))
     lo, hi = certified._evaluate_affine(
         xc, zeros, jnp.zeros((n, 2, p, p)), center, d_rad, rhat, None, 1.0, consts, layout

@@ -357,7 +357,13 @@ def _evaluate(backend, state, grad_d, sens2, th, noise, consts, p, n, noisy):
                 col = p + 2 * n + 2 * i + s
                 target.append(Jet(noise[i, s], unit(col), backend.zeros((m, m)), backend))
         noise_jets = (eq, eqd)
-    extra = {} if consts.get("precond") is None else dict(precond=consts["precond"])
+    extra = {}
+    if consts.get("precond") is not None:  # constant jets of the backend
+        zero_g, zero_h = backend.zeros((m,)), backend.zeros((m, m))
+        extra["precond"] = [
+            [Jet(backend.point(v), zero_g, zero_h, backend) for v in row]
+            for row in consts["precond"]
+        ]
     return consts["jets"](
         q,
         qd,
@@ -371,17 +377,17 @@ def _evaluate(backend, state, grad_d, sens2, th, noise, consts, p, n, noisy):
     )
 
 
-def _preconditioner(iv, setup, state, center):
+def _preconditioner(setup, state, center):
     """A chain solve's preconditioner at a centre state: ``M(q_c; th_c)^-1`` in float64,
     as the certifier takes it (any matrix is sound there: it only keeps the pivots of
-    the solve near 1), as ``n x n`` point intervals; None for the planar arm."""
+    the solve near 1), as ``n x n`` floats; None for the planar arm."""
     if setup["mass_matrix"] is None:
         return None
     th = np.asarray(setup["fixed"], np.float64)
     th[setup["free"]] = center
     matrix = np.asarray(setup["mass_matrix"](jnp.asarray(state[:, 0]), jnp.asarray(th)))
     inverse = np.linalg.inv(matrix)
-    return [[iv.mpf(float(v)) for v in row] for row in inverse]
+    return [[float(v) for v in row] for row in inverse]
 
 
 def _poly_range(iv, sens, sens2, d_box):
@@ -777,7 +783,7 @@ def _check_step(iv, backend, k, data, u, gens_d, setup):
         u=[iv.mpf(float(v)) for v in u],
         kp=[iv.mpf(v) for v in kp],
         kd=[iv.mpf(v) for v in kd],
-        precond=_preconditioner(iv, setup, state[k], center),
+        precond=_preconditioner(setup, state[k], center),
     )
     zero = iv.mpf(0)
     xc, s1, s2 = _arr(iv, state[k]), _arr(iv, sens[k]), _arr(iv, sens2[k])
