@@ -66,7 +66,7 @@ from _common import run_meta  # noqa: E402
 
 import rmijax  # noqa: E402
 from rmijax.methods.base import DivergedError  # noqa: E402
-from rmijax.methods.certified import _choice, certified_bounds  # noqa: E402
+from rmijax.methods.certified import _choice, _layout, certified_bounds  # noqa: E402
 
 CASES = {
     "arm2_hold_sine": (rmijax.paper_arm2, ["hold", "sine"]),
@@ -196,6 +196,7 @@ def run_case(name, duration, draws, every, splits, options=None, warm=True):
         **(dict(splits=splits) if isinstance(splits, dict) else {}),
         enclosure=cert.enclosure,
         propagate=cert.propagate,
+        solve=cert.solve,
         segments=int(cert.segments),
         steps=traj.n_steps,
         seconds=round(seconds, 2),
@@ -485,6 +486,13 @@ def main(argv=None):
         "--segments", type=int, default=3, help="radial segments of the Lagrange remainder"
     )
     parser.add_argument(
+        "--solve",
+        choices=("articulated", "preconditioned"),
+        default=None,
+        help="how the jets solve M gv = f (default: articulated on the planar arm, "
+        "preconditioned on a chain)",
+    )
+    parser.add_argument(
         "--cold-only", action="store_true", help="time one call only (no warm second call)"
     )
     parser.add_argument("--json", help="write the results to this JSON file")
@@ -539,7 +547,10 @@ def main(argv=None):
         started = time.perf_counter()
         try:
             options = dict(
-                enclosure=args.enclosure, propagate=args.propagate, segments=args.segments
+                enclosure=args.enclosure,
+                propagate=args.propagate,
+                segments=args.segments,
+                solve=args.solve,
             )
             row = run_case(
                 name,
@@ -555,11 +566,13 @@ def main(argv=None):
             row = dict(case=name, diverged=str(err), seconds=seconds)
             if isinstance(args.splits, dict):
                 row["splits"] = args.splits
-            n = CASES[name][0]().n_joints  # the pair the default chooses for it
+            params = CASES[name][0]()  # the options the default chooses for it
+            n, chain = params.n_joints, _layout(params) is not None
             row |= dict(
                 enclosure=_choice("enclosure", args.enclosure, ("interval", "affine"), n),
                 propagate=_choice("propagate", args.propagate, ("kernel", "carried"), n),
                 segments=args.segments,
+                solve=args.solve or ("preconditioned" if chain else "articulated"),
             )
             rows.append(row)
             print(f"{name:26} diverged after {row['seconds']} s: {err}", flush=True)

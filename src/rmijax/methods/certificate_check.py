@@ -53,7 +53,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from rmijax._intervals import Jet
-from rmijax.methods.certified import _layout, perturbation_jets
+from rmijax.methods.certified import _layout, perturbation_jets, solve_matrix
 
 __all__ = ["CheckResult", "check_certificate"]
 
@@ -378,14 +378,14 @@ def _evaluate(backend, state, grad_d, sens2, th, noise, consts, p, n, noisy):
 
 
 def _preconditioner(setup, state, center):
-    """A chain solve's preconditioner at a centre state: ``M(q_c; th_c)^-1`` in float64,
-    as the certifier takes it (any matrix is sound there: it only keeps the pivots of
-    the solve near 1), as ``n x n`` floats; None for the planar arm."""
-    if setup["mass_matrix"] is None:
+    """The solve's preconditioner at a centre state, ``A(q_c; th_c)^-1`` in float64 as
+    the certifier takes it (any matrix is sound there: it only keeps the pivots of the
+    solve near 1), as ``n x n`` floats; None for the articulated solve."""
+    if setup["matrix_fn"] is None:
         return None
     th = np.asarray(setup["fixed"], np.float64)
     th[setup["free"]] = center
-    matrix = np.asarray(setup["mass_matrix"](jnp.asarray(state[:, 0]), jnp.asarray(th)))
+    matrix = np.asarray(setup["matrix_fn"](jnp.asarray(state[:, 0]), jnp.asarray(th)))
     inverse = np.linalg.inv(matrix)
     return [[float(v) for v in row] for row in inverse]
 
@@ -459,14 +459,19 @@ def check_certificate(cert, traj, params, *, steps: int | None = None, pieces=No
         :class:`CheckResult`; ``ok`` is False with the first failed check in ``reason``.
 
     Raises:
-        ValueError: a certificate whose ``enclosure`` or ``propagate`` is not one of
-            the above.
+        ValueError: a certificate whose ``enclosure``, ``propagate`` or ``solve`` is
+            not one of the above.
     """
     if cert.enclosure not in ("interval", "affine") or cert.propagate not in ("kernel", "carried"):
         raise ValueError(
             "check_certificate: cert.enclosure must be 'interval' or 'affine' and "
             f"cert.propagate 'kernel' or 'carried', got {cert.enclosure!r} and "
             f"{cert.propagate!r}: pass the Certificate that certified_bounds returned"
+        )
+    if cert.solve not in ("articulated", "preconditioned"):
+        raise ValueError(
+            "check_certificate: cert.solve must be 'articulated' or 'preconditioned', got "
+            f"{cert.solve!r}: pass the Certificate that certified_bounds returned"
         )
     iv = _iv()
     backend = _MpBackend(iv)
@@ -503,7 +508,7 @@ def check_certificate(cert, traj, params, *, steps: int | None = None, pieces=No
         n=n,
         p=p,
         jets=perturbation_jets(_layout(params)),
-        mass_matrix=None if _layout(params) is None else params.model.mass_matrix,
+        matrix_fn=solve_matrix(params) if cert.solve == "preconditioned" else None,
         free=free,
         fixed=[float(v) for v in box_lo],
     )

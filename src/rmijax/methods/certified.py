@@ -78,7 +78,7 @@ from rmijax._affine import AffineForm, run_affine_tape
 from rmijax._intervals import Interval, Tape, run_tape, up
 from rmijax.control import coupled_perturbation
 from rmijax.methods.base import Bounds, DivergedError, check_types
-from rmijax.methods.chain_jets import chain_perturbation_jets
+from rmijax.methods.chain_jets import chain_perturbation_jets, solve_preconditioned
 from rmijax.robots.box import UncertainRobot
 from rmijax.robots.model import GRAVITY
 from rmijax.robots.planar import tail_sums
@@ -215,7 +215,7 @@ def _articulated_solve(masses, cos_d, sin_d, rhs):
     return psi
 
 
-def planar_perturbation_jets(q, qd, th, nominal, u, kp, kd, noise=None):
+def planar_perturbation_jets(q, qd, th, nominal, u, kp, kd, noise=None, precond=None):
     """``gv = qdd - v`` of the planar point-mass arm on jets: a list of ``n`` jets.
 
     Written as ``gv = M(q; th)^-1 f`` with
@@ -233,6 +233,9 @@ def planar_perturbation_jets(q, qd, th, nominal, u, kp, kd, noise=None):
         u, kp, kd: ``n`` constants each: feed-forward (rad/s^2) and gains.
         noise: None, or ``(eq, eqd)``: lists of ``n`` jets, the reading errors
             that the controller sees (``y = x + eta``).
+        precond: None (the tip-first articulated solve), or ``n x n`` constants ``P``:
+            ``(Mu o C) psi = b`` is solved as ``P (Mu o C) psi = P b`` by elimination
+            (:func:`rmijax.methods.chain_jets.solve_preconditioned`; any ``P``).
 
     Returns:
         ``n`` jets of ``gv`` (rad/s^2).
@@ -267,7 +270,13 @@ def planar_perturbation_jets(q, qd, th, nominal, u, kp, kd, noise=None):
         true = _torque_terms(nominal_w, cos_phi, cos_d, sin_d, rate_sq, acc, nominal_g)
         f_phi = [f_phi[a] + measured[a] - true[a] for a in range(n)]
     rhs = [f_phi[a] / lengths[a] for a in range(n)]
-    psi = _articulated_solve(masses, cos_d, sin_d, rhs)
+    if precond is None:
+        psi = _articulated_solve(masses, cos_d, sin_d, rhs)
+    else:
+        matrix = [
+            [mu[a] if a == b else mu[max(a, b)] * cos_d[a][b] for b in range(n)] for a in range(n)
+        ]
+        psi = solve_preconditioned(matrix, rhs, precond)
     phidd = [psi[a] / lengths[a] for a in range(n)]
     return [phidd[0]] + [phidd[a] - phidd[a - 1] for a in range(1, n)]
 
@@ -305,6 +314,8 @@ class Certificate:
         propagate: ``"kernel"`` (``remainder`` from ``injected`` through ``kernel``
             and ``tail``) or ``"carried"`` (through the pieces' own loops; the
             generators are not stored: :func:`check_certificate` carries its own) (static).
+        solve: ``"articulated"`` or ``"preconditioned"``: how the jets solve ``M gv =
+            f`` (the preconditioner is recomputed, not stored: any is sound) (static).
     """
 
     center: jax.Array
@@ -324,6 +335,7 @@ class Certificate:
     segments: int = dataclasses.field(default=3, metadata=dict(static=True))
     enclosure: str = dataclasses.field(default="interval", metadata=dict(static=True))
     propagate: str = dataclasses.field(default="kernel", metadata=dict(static=True))
+    solve: str = dataclasses.field(default="articulated", metadata=dict(static=True))
 
     @property
     def n_pieces(self) -> int:
@@ -447,16 +459,16 @@ def _layout(params):
 
 
 @functools.cache
-def _perturbation_tape(layout, n, p, noisy):
+def _perturbation_tape(layout, n, p, noisy, precond=False):
     """The tape of :func:`perturbation_jets` for ``n`` joints and ``p`` parameters, and its
     output rows.
 
     Leaves, in order: ``q (n), qd (n), th (p)``, with noise ``eq (n), eqd (n)``,
-    then the constants ``nominal (p), u (n), kp (n), kd (n)``, and for a chain the
-    preconditioner ``P (n * n)`` of its solve, row by row
-    (:func:`rmijax.methods.chain_jets.chain_perturbation_jets`).
+    then the constants ``nominal (p), u (n), kp (n), kd (n)``, and with ``precond`` the
+    preconditioner ``P (n * n)`` of the solve, row by row
+    (:func:`rmijax.methods.chain_jets.solve_preconditioned`).
     """
-    tape = Tape(_tape_leaves(n, p, noisy, layout is not None))
+    tape = Tape(_tape_leaves(n, p, noisy, precond))
     leaves = tape.leaves()
     take = iter(leaves)
     q, qd = [next(take) for _ in range(n)], [next(take) for _ in range(n)]
@@ -466,35 +478,49 @@ def _perturbation_tape(layout, n, p, noisy):
         noise = ([next(take) for _ in range(n)], [next(take) for _ in range(n)])
     nominal = [next(take) for _ in range(p)]
     u, kp, kd = ([next(take) for _ in range(n)] for _ in range(3))
-    if layout is None:
-        gv = planar_perturbation_jets(q, qd, th, nominal, u, kp, kd, noise)
-    else:
-        precond = [[next(take) for _ in range(n)] for _ in range(n)]
-        gv = chain_perturbation_jets(layout, q, qd, th, nominal, u, kp, kd, noise, precond)
+    matrix = [[next(take) for _ in range(n)] for _ in range(n)] if precond else None
+    gv = perturbation_jets(layout)(q, qd, th, nominal, u, kp, kd, noise, matrix)
     return tape.arrays(), tuple(node.index for node in gv)
 
 
-def _tape_leaves(n, p, noisy, chain=False):
+def _tape_leaves(n, p, noisy, precond=False):
     """How many leaves :func:`_perturbation_tape` has for ``n`` joints, ``p`` parameters."""
-    return 2 * n + p + (2 * n if noisy else 0) + p + 3 * n + (n * n if chain else 0)
+    return 2 * n + p + (2 * n if noisy else 0) + p + 3 * n + (n * n if precond else 0)
 
 
-def _constants(consts, layout):
-    """The tape's constant leaves: nominal, u, kp, kd, and a chain's preconditioner."""
+def _constants(consts):
+    """The tape's constant leaves: nominal, u, kp, kd, and the preconditioner if given."""
     parts = [consts["nominal"], consts["u"], consts["kp"], consts["kd"]]
-    if layout is not None:
-        if consts.get("precond") is None:
-            raise ValueError("a chain's tape needs consts['precond'] (see _preconditioner)")
+    if consts.get("precond") is not None:
         parts.append(jnp.asarray(consts["precond"]).reshape(-1))
     return jnp.concatenate(parts)
 
 
-def _preconditioner(mass_matrix, xc, center, fixed, free):
-    """``M(q_c; th_c)^-1`` in float64: the chain solve's preconditioner at a centre state.
-    Any matrix is sound there (see ``chain_perturbation_jets``); this one keeps its
-    pivots near 1."""
+def solve_matrix(params):
+    """``(q, th) -> A`` (n, n) float: the matrix that the perturbation's jets solve with,
+    for :func:`_preconditioner`: ``M(q; th)`` of a chain, ``Mu o C`` (``(Mu o C)_ab =
+    mu_max(a, b) cos(phi_a - phi_b)``, ``mu`` the tail sums of the masses) of the planar
+    arm."""
+    if _layout(params) is not None:
+        return params.model.mass_matrix
+
+    def planar(q, th):
+        n = q.shape[0]
+        mu = jnp.cumsum(th[:n][::-1])[::-1]
+        phi = jnp.cumsum(q)
+        index = jnp.maximum(jnp.arange(n)[:, None], jnp.arange(n)[None, :])
+        return mu[index] * jnp.cos(phi[:, None] - phi[None, :])
+
+    return planar
+
+
+def _preconditioner(matrix_fn, xc, center, fixed, free):
+    """``A(q_c; th_c)^-1`` in float64 (``matrix_fn`` from :func:`solve_matrix`): the
+    preconditioner of the solve at a centre state. Any matrix is sound there (see
+    :func:`rmijax.methods.chain_jets.solve_preconditioned`); this one keeps its pivots
+    near 1."""
     th = center if free is None else fixed.at[np.asarray(free, dtype=np.int32)].set(center)
-    return jnp.linalg.inv(mass_matrix(xc[:, 0], th))
+    return jnp.linalg.inv(matrix_fn(xc[:, 0], th))
 
 
 def _cat(*parts):
@@ -511,7 +537,7 @@ def _evaluate(state, state_grad_d, sens2, th_value, noise_value, consts, layout=
             its derivative in ``d``; sens2: (n, 2, p, p) its second derivative.
         th_value: Interval (p,); noise_value: Interval (n, 2) or None.
         consts: dict of nominal (p,), u, kp, kd (n,), with ``free`` fixed (all
-            parameters), for a chain precond (n, n) (:func:`_preconditioner`).
+            parameters), and precond (n, n) (:func:`_preconditioner`) or None.
         layout: the model's (:func:`_layout`).
         free: None, or the indices of the uncertain parameters (static): then ``d``,
             ``th_value`` and the state's derivatives hold those only, and the certain
@@ -545,12 +571,12 @@ def _evaluate(state, state_grad_d, sens2, th_value, noise_value, consts, layout=
         values.append(Interval(swap(noise_value.lo), swap(noise_value.hi)))
         grads.append(Interval(swap(eye[p + 2 * n :].reshape(n, 2, m))))
         hessians.append(Interval(jnp.zeros((2 * n, m, m), dtype)))
-    constants = _constants(consts, layout)
+    constants = _constants(consts)
     values.append(Interval(constants))
     grads.append(Interval(jnp.zeros((constants.shape[0], m), dtype)))
     hessians.append(Interval(jnp.zeros((constants.shape[0], m, m), dtype)))
     value, grad, hessian = _cat(*values), _cat(*grads), _cat(*hessians)
-    tape, rows = _perturbation_tape(layout, n, width, noisy)
+    tape, rows = _perturbation_tape(layout, n, width, noisy, consts.get("precond") is not None)
     leaves = (value.lo, value.hi, grad.lo, grad.hi, hessian.lo, hessian.hi)
     return run_tape(tape, leaves, np.asarray(rows))
 
@@ -621,7 +647,7 @@ def _evaluate_affine(
         values.append(exact(eta_c, unit_eta * rad[None], eta_c))
         grads.append(AffineForm.point(unit_eta, m))
         hess.append(jnp.zeros((2 * n, m, m), dtype))
-    constants = _constants(consts, layout)
+    constants = _constants(consts)
     values.append(AffineForm.point(constants, m))
     grads.append(AffineForm.point(jnp.zeros((constants.shape[0], m), dtype), m))
     hess.append(jnp.zeros((constants.shape[0], m, m), dtype))
@@ -631,7 +657,7 @@ def _evaluate_affine(
         return AffineForm(*parts)
 
     leaves = (cat(values), cat(grads), cat([AffineForm.point(h, m) for h in hess]))
-    tape, rows = _perturbation_tape(layout, n, width, noisy)
+    tape, rows = _perturbation_tape(layout, n, width, noisy, consts.get("precond") is not None)
     _, _, h = run_affine_tape(tape, leaves, np.asarray(rows))
     return h.bounds()
 
@@ -655,14 +681,16 @@ def _certify_piece(
     layout=None,
     free=None,
     fixed=None,
-    mass_matrix=None,
+    matrix_fn=None,
 ):
     """The Taylor-model induction over the whole run for one piece of the box.
 
     ``scale`` multiplies the remainder (1 in use; the tests' mutations set it to
     0 or 0.5 to show that it matters). With ``free`` (static) the piece's ``center``,
     ``lo``, ``hi`` hold the uncertain parameters only and ``fixed`` (p,) gives the
-    others. With ``diagnostics`` (static) the output also holds ``w_blocks`` (T, n, 10):
+    others. With ``matrix_fn`` (static, :func:`solve_matrix`) the solve is preconditioned
+    by its inverse at each step's centre. With ``diagnostics`` (static) the output also
+    holds ``w_blocks`` (T, n, 10):
     ``w_k`` split by source (see :func:`_w_blocks`).
     """
     n = traj.n_joints
@@ -692,8 +720,8 @@ def _certify_piece(
     def step(carry, u):
         xc, sens, sens2, buf, tail_max, rhat, gens, gens_d, k = carry
         consts = dict(nominal=nominal, u=u, kp=kp, kd=kd, fixed=fixed)
-        if layout is not None:
-            consts["precond"] = _preconditioner(mass_matrix, xc, center, fixed, free)
+        if matrix_fn is not None:
+            consts["precond"] = _preconditioner(matrix_fn, xc, center, fixed, free)
         # --- the centre: coefficients of the next Taylor model ---------------
         zero_noise = Interval(jnp.zeros((n, 2), dtype)) if noisy else None
         g0, g1, g2 = _evaluate(
@@ -936,6 +964,7 @@ def _w_blocks(linear, quadratic, n, p):
         "propagate",
         "layout",
         "free",
+        "solve",
     ),
 )
 def _certify(
@@ -957,6 +986,7 @@ def _certify(
     layout=None,
     free=None,
     fixed=None,
+    solve="articulated",
 ):
     kernel, tail = _kernel(traj.kp, traj.kd, traj.dt, kernel_steps)
     run = functools.partial(
@@ -976,11 +1006,11 @@ def _certify(
         layout=layout,
         free=free,
         fixed=fixed,
-        mass_matrix=params.model.mass_matrix,
+        matrix_fn=solve_matrix(params) if solve == "preconditioned" else None,
     )
     n, p = traj.n_joints, params.n_params
     if enclosure == "affine":
-        batch = _affine_batch(layout, n, p, centers.shape[1], noisy)
+        batch = _affine_batch(layout, n, p, centers.shape[1], noisy, solve == "preconditioned")
     else:
         batch = centers.shape[0]
     if batch < centers.shape[0]:  # pieces in batches: the affine jets' buffers are large
@@ -990,7 +1020,7 @@ def _certify(
     return pieces, kernel, tail
 
 
-def _affine_batch(layout, n, p, variables, noisy):
+def _affine_batch(layout, n, p, variables, noisy, precond=False):
     """How many pieces to evaluate together on affine jets: as many as keep the tape's
     buffers (rows x packed Hessian, gradient and value x (symbols + 2) floats) within
     :data:`_AFFINE_BUFFER`, at least one. Measured on this 2-core CPU (the Intel Xeon
@@ -998,9 +1028,9 @@ def _affine_batch(layout, n, p, variables, noisy):
     7.4 / 8.6 s once compiled in batches of 1 / 2 / 4 / 8 / 16, one 4-link evaluation
     (9 MB) 13.8 ms alone and 20.8 ms per piece in batches of 16: larger batches leave
     the cache."""
-    tape, _ = _perturbation_tape(layout, n, p, noisy)
+    tape, _ = _perturbation_tape(layout, n, p, noisy, precond)
     m = variables + 2 * n + (2 * n if noisy else 0)  # (d, R[, eta]): uncertain ``d`` only
-    rows = _tape_leaves(n, p, noisy, layout is not None) + tape[0].shape[0]
+    rows = _tape_leaves(n, p, noisy, precond) + tape[0].shape[0]
     per_piece = rows * (m * (m + 1) // 2 + m + 1) * (m + 2) * 8
     return max(1, _AFFINE_BUFFER // per_piece)
 
@@ -1125,6 +1155,7 @@ def _certify_box(
     diagnostics=False,
     enclosure="interval",
     propagate="kernel",
+    solve="articulated",
 ):
     """Split the box and certify every piece: ``(centers, los, his, pieces, kernel, tail)``.
 
@@ -1158,6 +1189,7 @@ def _certify_box(
         layout=layout,
         free=free,
         fixed=fixed,
+        solve=solve,
     )
     if free is not None:  # back to every parameter: the certain ones' coefficients are 0
         rows = np.asarray(free, dtype=np.int32)
@@ -1189,6 +1221,7 @@ def certified_bounds(
     remainder_scale: float = 1.0,
     enclosure: str | None = None,
     propagate: str | None = None,
+    solve: str | None = None,
 ) -> tuple[Bounds, Certificate]:
     """Bands proven to contain the output of every constant-parameter run, and their certificate.
 
@@ -1228,6 +1261,14 @@ def certified_bounds(
             loop a coefficient: bounded at four joints where ``"kernel"`` diverges).
             None: kernel up to two joints, carried above. The certificate checker
             re-verifies every pair.
+        solve: how ``M gv = f`` is solved on the jets: ``"articulated"`` (eliminating
+            from the tip, the pivots the articulated inertias) or ``"preconditioned"``
+            (``P M gv = P f`` by elimination, ``P`` the float inverse of ``M`` at each
+            step's centre: pivots near 1, so the enclosures keep the parameters'
+            dependence over wide boxes; any ``P`` gives the same ``gv``, so ``P`` needs
+            no proof). None: articulated on the planar arm, preconditioned on a chain
+            (where the articulated pivots of the Panda's wrist held 0 over its default
+            masses and payload).
 
     Returns:
         ``(bounds, certificate)``: :class:`~rmijax.methods.base.Bounds` with
@@ -1271,6 +1312,10 @@ def certified_bounds(
     segments = _checks.positive_int("segments", segments)
     enclosure = _choice("enclosure", enclosure, ("interval", "affine"), n)
     propagate = _choice("propagate", propagate, ("kernel", "carried"), n)
+    if solve is None:
+        solve = "articulated" if _layout(params) is None else "preconditioned"
+    elif solve not in ("articulated", "preconditioned"):
+        raise ValueError(f"solve must be 'articulated', 'preconditioned' or None, got {solve!r}")
     centers, los, his, pieces, kernel, tail = _certify_box(
         traj,
         params,
@@ -1282,6 +1327,7 @@ def certified_bounds(
         remainder_scale,
         enclosure=enclosure,
         propagate=propagate,
+        solve=solve,
     )
     lower = jnp.min(pieces["lower"], axis=0)
     upper = jnp.max(pieces["upper"], axis=0)
@@ -1323,6 +1369,7 @@ def certified_bounds(
         segments=segments,
         enclosure=enclosure,
         propagate=propagate,
+        solve=solve,
     )
     return bounds, certificate
 

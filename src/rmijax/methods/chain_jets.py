@@ -41,7 +41,7 @@ import numpy as np
 from rmijax.robots import _unrolled as _u
 from rmijax.robots.spatial import COULOMB_VELOCITY, GRAVITY, ChainLayout, _skew
 
-__all__ = ["chain_perturbation_jets"]
+__all__ = ["chain_perturbation_jets", "solve_preconditioned"]
 
 
 class _Local(NamedTuple):
@@ -292,7 +292,7 @@ def _solve_tip_first(matrix, rhs):
     return x
 
 
-def _solve_preconditioned(matrix, rhs, precond):
+def solve_preconditioned(matrix, rhs, precond):
     """Solve ``M x = rhs`` as ``(P M) x = P rhs`` by Gaussian elimination without pivoting.
 
     ``P`` (``n x n`` constants of the backend) is any matrix: the solution is the same
@@ -375,6 +375,8 @@ def chain_perturbation_jets(
         u, kp, kd: ``n`` constants each: feed-forward acceleration and gains.
         noise: None, or ``(eq, eqd)``: lists of ``n`` jets, the reading errors the
             controller sees.
+        precond: None (the tip-first ``U D U'`` solve, pivots the articulated
+            inertias), or ``n x n`` constants ``P`` (:func:`solve_preconditioned`).
 
     Returns:
         ``n`` jets of ``gv`` (rad/s^2).
@@ -404,5 +406,5 @@ def chain_perturbation_jets(
         f = [f[j] + measured[j] - true[j] for j in range(n)]
     matrix = _mass_matrix(local, revolute, joints, th[:count], chain.armature)
     if precond is not None:
-        return _solve_preconditioned(matrix, f, precond)
+        return solve_preconditioned(matrix, f, precond)
     return _solve_tip_first(matrix, f)
