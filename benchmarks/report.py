@@ -398,6 +398,8 @@ def certified_table():
             case = f"`{r['case']}`" + (f" ({cuts})" if cuts else "")
             pair = f"{r.get('enclosure', default[0])} / {r.get('propagate', default[1])}"
             pair += f", {r['segments']} segment" if r.get("segments", 3) != 3 else ""
+            # rows before the solve option (stop 32) solved by articulated pivots
+            pair += ", preconditioned" if r.get("solve") == "preconditioned" else ""
             if "diverged" in r:
                 step = r["diverged"].split("(step ")[1].split(",")[0]
                 rows.append(

@@ -52,8 +52,10 @@ re-verifies every pair on short runs (its own affine arithmetic and generators o
 Supported models: the planar point-mass arm (:func:`rmijax.planar_arm`,
 :func:`rmijax.preset_arm`, ...), whose ``M`` and ``h`` the jets evaluate in their
 closed form, and the serial chains of :func:`rmijax.load_robot` (Panda, iiwa14, UR5e,
-any URDF/MJCF chain), evaluated by body-frame Newton-Euler, composite inertias and a
-tip-first ``U D U'`` solve on the same jets (:mod:`rmijax.methods.chain_jets`; the
+any URDF/MJCF chain), evaluated by body-frame Newton-Euler, composite inertias and an
+elimination preconditioned by the float inverse of ``M`` at each step's centre
+(``solve="preconditioned"``; or the tip-first ``U D U'``, ``"articulated"``) on the
+same jets (:mod:`rmijax.methods.chain_jets`; the
 chain's constants, joint-frame products and inertias about the joint origins, rounded
 once to float64). Other models are refused with a ``NotImplementedError``. On a chain
 the default box of :func:`rmijax.robots.loaders.default_box` is too wide: the

@@ -29,7 +29,10 @@ terms the size of ``m |c|^2`` and interval enclosures over the box lose it; in b
 each body's inertia about its own joint is a constant. ``M`` is factored ``U D U'`` from
 the tip (``U`` unit upper): ``D_j`` is the articulated inertia of joint ``j`` about its
 axis, positive for every ``th`` in the box (an enclosure over a wide box can still hold 0:
-then the band is infinite and :func:`rmijax.certified_bounds` says it diverged).
+then the band is infinite and :func:`rmijax.certified_bounds` says it diverged). With
+a preconditioner ``P`` (the certifier's default on chains) the system is solved as
+``(P M) x = P rhs`` instead (:func:`solve_preconditioned`): with ``P`` the float inverse
+of ``M`` at the enclosure's centre the pivots stay near 1 over wide boxes.
 """
 
 from __future__ import annotations
