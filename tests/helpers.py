@@ -38,3 +38,28 @@ def load_benchmark(name):
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+def jets_at_a_point(function, arrays, noise=None, precond=None):
+    """Evaluate perturbation jets (``planar_perturbation_jets`` or a chain's) at a point,
+    in the certificate checker's mpmath intervals: ``arrays`` = ``q, qd, th, nominal, u,
+    kp, kd`` (float arrays), ``noise`` None or (n, 2), ``precond`` None or (n, n).
+
+    Returns:
+        ``(lower, upper)``: float arrays of ``gv``'s enclosure, (n,).
+    """
+    from rmijax._intervals import Jet
+    from rmijax.methods.certificate_check import _iv, _MpBackend
+
+    iv = _iv()
+    backend = _MpBackend(iv)
+    zero = iv.mpf(0)
+
+    def jets(values):
+        grad, hess = np.full(1, zero, dtype=object), np.full((1, 1), zero, dtype=object)
+        return [Jet(iv.mpf(float(v)), grad, hess, backend) for v in np.asarray(values)]
+
+    extra = None if noise is None else (jets(noise[:, 0]), jets(noise[:, 1]))
+    matrix = None if precond is None else [jets(row) for row in precond]
+    gv = function(*(jets(a) for a in arrays), extra, matrix)
+    return np.array([float(g.v.a) for g in gv]), np.array([float(g.v.b) for g in gv])

@@ -12,11 +12,12 @@ import numpy as np
 import pytest
 
 import rmijax
-from rmijax._intervals import Jet
-from rmijax.methods.certificate_check import _iv, _MpBackend, check_certificate
+from rmijax.methods.certificate_check import _iv, check_certificate
 from rmijax.methods.certified import certified_bounds, planar_perturbation_jets, solve_matrix
 from rmijax.methods.dispatch import options_of
 from rmijax.methods.linearized import window_output
+
+from helpers import jets_at_a_point
 
 DURATION = 1.0
 TOL = 1e-12  # rounding level: the simulator's own float64 error on |y| ~ 1
@@ -571,31 +572,12 @@ def test_perturbation_jets_equal_the_model_at_a_point(n):
     q, qd, u = rng.normal(size=n), rng.normal(size=n), rng.normal(size=n)
     kp, kd = np.full(n, 100.0), np.full(n, 20.0)
 
-    iv = _iv()
-    backend = _MpBackend(iv)
-    zero = iv.mpf(0)
-
-    def jets(values):  # points, in the checker's mpmath intervals
-        grad, hess = np.full(1, zero, dtype=object), np.full((1, 1), zero, dtype=object)
-        return [Jet(iv.mpf(float(v)), grad, hess, backend) for v in values]
-
     inverse = np.linalg.inv(np.asarray(solve_matrix(params)(jnp.asarray(q), jnp.asarray(th))))
     perturbed = inverse * rng.uniform(0.8, 1.2, size=(n, n))
     expected = _planar_gv(th, np.asarray(params.nominal), q, qd, u, kp, kd)
+    arrays = (q, qd, th, np.asarray(params.nominal), u, kp, kd)
     for precond in (None, inverse, perturbed):
-        gv = planar_perturbation_jets(
-            jets(q),
-            jets(qd),
-            jets(th),
-            jets(np.asarray(params.nominal)),
-            jets(u),
-            jets(kp),
-            jets(kd),
-            None,
-            None if precond is None else [jets(row) for row in precond],
-        )
-        lower = np.array([float(g.v.a) for g in gv])
-        upper = np.array([float(g.v.b) for g in gv])
+        lower, upper = jets_at_a_point(planar_perturbation_jets, arrays, precond=precond)
         assert np.all(upper - lower < 1e-8)
         np.testing.assert_allclose(0.5 * (lower + upper), expected, rtol=1e-10, atol=1e-10)
 

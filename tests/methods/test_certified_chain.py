@@ -5,6 +5,7 @@ the independent checker on a chain certificate."""
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -16,9 +17,11 @@ from rmijax import _affine, _intervals as intervals
 from rmijax._intervals import Interval, Jet
 from rmijax.apps.real_arm import real_arm_case
 from rmijax.methods import certified
-from rmijax.methods.certificate_check import _iv, _MpBackend, _tanh, check_certificate
+from rmijax.methods.certificate_check import _iv, _tanh, check_certificate
 from rmijax.methods.chain_jets import chain_perturbation_jets
 from rmijax.robots.loaders import default_box
+
+from helpers import jets_at_a_point
 
 ARMS = ("ur5e", "panda", "iiwa14")
 TOL = 1e-12
@@ -68,33 +71,13 @@ def test_chain_jets_equal_the_model_at_a_point(name):
     th, q, qd, u = _point(params, 1)
     kp, kd = np.full(n, 100.0), np.full(n, 20.0)
     eta = np.random.default_rng(2).uniform(-0.01, 0.01, size=(n, 2))
-    iv = _iv()
-    backend = _MpBackend(iv)
-    zero = iv.mpf(0)
-
-    def jets(values):
-        grad, hess = np.full(1, zero, dtype=object), np.full((1, 1), zero, dtype=object)
-        return [Jet(iv.mpf(float(v)), grad, hess, backend) for v in values]
-
     inverse = np.linalg.inv(np.asarray(params.model.mass_matrix(q, th)))
     perturbed = inverse * np.random.default_rng(3).uniform(0.8, 1.2, size=(n, n))
     solves = [None, inverse, np.eye(n), perturbed]
+    function = functools.partial(chain_perturbation_jets, layout)
+    arrays = (q, qd, th, np.asarray(params.nominal), u, kp, kd)
     for noise, precond in [(noise, p) for noise in (None, eta) for p in solves]:
-        extra = None if noise is None else (jets(noise[:, 0]), jets(noise[:, 1]))
-        gv = chain_perturbation_jets(
-            layout,
-            jets(q),
-            jets(qd),
-            jets(th),
-            jets(np.asarray(params.nominal)),
-            jets(u),
-            jets(kp),
-            jets(kd),
-            extra,
-            None if precond is None else [jets(row) for row in precond],
-        )
-        lower = np.array([float(g.v.a) for g in gv])
-        upper = np.array([float(g.v.b) for g in gv])
+        lower, upper = jets_at_a_point(function, arrays, noise, precond)
         expected = np.asarray(_model_gv(params, q, qd, u, kp, kd, th, noise))
         assert np.all(upper - lower < 1e-9)
         np.testing.assert_allclose(0.5 * (lower + upper), expected, rtol=1e-10, atol=1e-10)
