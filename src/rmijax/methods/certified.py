@@ -59,11 +59,12 @@ same jets (:mod:`rmijax.methods.chain_jets`; the
 chain's constants, joint-frame products and inertias about the joint origins, rounded
 once to float64). Other models are refused with a ``NotImplementedError``. On a chain
 the default box of :func:`rmijax.robots.loaders.default_box` is too wide: the
-remainder diverges within the first 0.1 s. Over the first second of ``rmijax
+remainder diverged within the first 0.1 s on every arm (the Panda's at step 8 with the
+preconditioned solve). Over the first second of ``rmijax
 --robot``'s move a tenth of it is certified on all three arms, and its friction ranges
-alone on the UR5e and the Panda (the Panda's within 1.5x of the worst case once cut in
-two along ``coulomb[joint4]``, the range :func:`split_ranking` puts first), not the
-iiwa14 (``docs/methods.md``, section 7).
+alone on the UR5e and the Panda (the Panda's within 1.5x of the worst case at the
+median; cut in two along ``coulomb[joint4]``, the range :func:`split_ranking` puts first,
+its p90 too), not the iiwa14 (``docs/methods.md``, section 7).
 """
 
 from __future__ import annotations
