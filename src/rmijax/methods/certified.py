@@ -436,7 +436,7 @@ def _kernel(kp, kd, dt, steps):
 
 
 def perturbation_jets(layout):
-    """The function ``(q, qd, th, nominal, u, kp, kd, noise) -> gv`` jets of a model:
+    """The function ``(q, qd, th, nominal, u, kp, kd, noise, precond) -> gv`` jets of a model:
     :func:`planar_perturbation_jets` for ``layout=None`` (the planar arm), else
     :func:`rmijax.methods.chain_jets.chain_perturbation_jets` for that chain."""
     if layout is None:
@@ -1270,7 +1270,7 @@ def certified_bounds(
             step's centre: pivots near 1, so the enclosures keep the parameters'
             dependence over wide boxes; any ``P`` gives the same ``gv``, so ``P`` needs
             no proof). None: articulated on the planar arm, preconditioned on a chain
-            (where the articulated pivots of the Panda's wrist held 0 over its default
+            (where an articulated pivot's enclosure held 0 over the Panda's default
             masses and payload).
 
     Returns:
