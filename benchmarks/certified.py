@@ -66,7 +66,7 @@ from _common import run_meta  # noqa: E402
 
 import rmijax  # noqa: E402
 from rmijax.methods.base import DivergedError  # noqa: E402
-from rmijax.methods.certified import _choice, _layout, certified_bounds  # noqa: E402
+from rmijax.methods.certified import _choice, _solve_choice, certified_bounds  # noqa: E402
 
 CASES = {
     "arm2_hold_sine": (rmijax.paper_arm2, ["hold", "sine"]),
@@ -567,12 +567,12 @@ def main(argv=None):
             if isinstance(args.splits, dict):
                 row["splits"] = args.splits
             params = CASES[name][0]()  # the options the default chooses for it
-            n, chain = params.n_joints, _layout(params) is not None
+            n = params.n_joints
             row |= dict(
                 enclosure=_choice("enclosure", args.enclosure, ("interval", "affine"), n),
                 propagate=_choice("propagate", args.propagate, ("kernel", "carried"), n),
                 segments=args.segments,
-                solve=args.solve or ("preconditioned" if chain else "articulated"),
+                solve=_solve_choice(args.solve, params),
             )
             rows.append(row)
             print(f"{name:26} diverged after {row['seconds']} s: {err}", flush=True)

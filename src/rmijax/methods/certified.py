@@ -1315,10 +1315,7 @@ def certified_bounds(
     segments = _checks.positive_int("segments", segments)
     enclosure = _choice("enclosure", enclosure, ("interval", "affine"), n)
     propagate = _choice("propagate", propagate, ("kernel", "carried"), n)
-    if solve is None:
-        solve = "articulated" if _layout(params) is None else "preconditioned"
-    elif solve not in ("articulated", "preconditioned"):
-        raise ValueError(f"solve must be 'articulated', 'preconditioned' or None, got {solve!r}")
+    solve = _solve_choice(solve, params)
     centers, los, his, pieces, kernel, tail = _certify_box(
         traj,
         params,
@@ -1385,3 +1382,14 @@ def _choice(name, value, options, n_joints):
     if value not in options:
         raise ValueError(f"{name} must be one of {options} or None, got {value!r}")
     return value
+
+
+def _solve_choice(solve, params):
+    """``solve`` if it is one of the two solves; None: articulated on the planar arm
+    (unchanged to the bit), preconditioned on a chain (where an articulated pivot's
+    enclosure held 0 over the Panda's default box)."""
+    if solve is None:
+        return "articulated" if _layout(params) is None else "preconditioned"
+    if solve not in ("articulated", "preconditioned"):
+        raise ValueError(f"solve must be 'articulated', 'preconditioned' or None, got {solve!r}")
+    return solve

@@ -307,11 +307,9 @@ def solve_preconditioned(matrix, rhs, precond):
     a wrong one.
     """
     n = len(rhs)
-    a = [
-        [_sum([_u.mul(precond[i][k], matrix[k][j]) for k in range(n)]) for j in range(n)]
-        for i in range(n)
-    ]
-    b = [_sum([_u.mul(precond[i][k], rhs[k]) for k in range(n)]) for i in range(n)]
+    columns = [[matrix[k][j] for k in range(n)] for j in range(n)]
+    a = [[_u.dot(precond[i], columns[j]) for j in range(n)] for i in range(n)]
+    b = [_u.dot(precond[i], rhs) for i in range(n)]
     inverse = [None] * n
     for k in range(n):
         inverse[k] = 1.0 / a[k][k]
@@ -327,13 +325,6 @@ def solve_preconditioned(matrix, rhs, precond):
             total = _u.sub(total, _u.mul(a[i][j], x[j]))
         x[i] = _u.mul(total, inverse[i])
     return x
-
-
-def _sum(terms):
-    total = terms[0]
-    for term in terms[1:]:
-        total = _u.add(total, term)
-    return total
 
 
 def _smooth_sign(qd):
