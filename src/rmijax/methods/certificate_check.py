@@ -6,8 +6,9 @@ arithmetic (53-bit, each operation rounded outward by the library) instead of
 the JAX float64 code that produced the certificate. It trusts nothing in the
 certificate but uses its numbers as the *claims* to verify:
 
-1. the pieces tile the box (a product grid whose cuts start at ``lo`` and end
-   at ``hi``), and each centre lies in its piece;
+1. the pieces tile the box (inside it, no two interiors meeting, volumes summing
+   to the box's: a product grid or an adaptive bisection), and each centre lies in
+   its piece;
 2. the start: ``x_c(0) = x_d(0)``, ``S_0 = 0``, ``Q_0 = 0``;
 3. for every checked step ``k``: the exact coefficients ``c0, c1, c2`` of the
    next Taylor model (the closed loop applied to the stored one, ``gv``'s jets
@@ -46,7 +47,7 @@ Requires ``mpmath`` (the ``test`` extra).
 
 from __future__ import annotations
 
-import itertools
+from fractions import Fraction
 from typing import NamedTuple
 
 import jax.numpy as jnp
@@ -412,27 +413,46 @@ def _poly_range(iv, sens, sens2, d_box):
 
 
 def _tiling_error(cert, params):
+    """ "" when the pieces tile the box, else why not.
+
+    Any set of boxes (a product grid or an adaptive bisection): every piece inside the
+    box, no two pieces' interiors meeting, and their volumes (exact rationals of the
+    floats, over the uncertain parameters) summing to the box's. Then their union is
+    the box: it is closed, and a point of the box outside it would leave an open part
+    of the box uncovered, so the volumes would fall short.
+    """
     lo, hi = np.asarray(params.lo, np.float64), np.asarray(params.hi, np.float64)
     plo, phi = np.asarray(cert.lo, np.float64), np.asarray(cert.hi, np.float64)
     centers = np.asarray(cert.center, np.float64)
-    p = lo.size
-    cuts = []
-    for b in range(p):
-        values = np.unique(np.concatenate([plo[:, b], phi[:, b]]))
-        if values[0] != lo[b] or values[-1] != hi[b]:
-            return f"the pieces do not span parameter {b}'s box [{lo[b]!r}, {hi[b]!r}]"
-        cuts.append(values)
-    cells = {tuple(row) for row in np.concatenate([plo, phi], axis=1)}
-    count = 1
-    for b in range(p):
-        count *= max(len(cuts[b]) - 1, 1)
-    grid = itertools.product(
-        *[list(zip(c[:-1], c[1:], strict=True)) if len(c) > 1 else [(c[0], c[0])] for c in cuts]
-    )
-    for cell in grid:
-        key = tuple(e[0] for e in cell) + tuple(e[1] for e in cell)
-        if key not in cells:
-            return f"no piece covers the cell {key} of the box"
+    if plo.ndim != 2 or plo.shape != phi.shape or plo.shape[1] != lo.size:
+        return f"the pieces' bounds have shapes {plo.shape} and {phi.shape}, not (P, {lo.size})"
+    outside = np.flatnonzero(np.any((plo < lo) | (phi > hi) | (plo > phi), axis=1))
+    if outside.size:
+        return f"piece {int(outside[0])} is not a box inside the parameter box"
+    free = np.flatnonzero(hi > lo)
+    # interiors meet where every uncertain range overlaps with positive length
+    meet = np.ones((plo.shape[0],) * 2, dtype=bool)
+    for b in free:
+        meet &= np.maximum(plo[:, None, b], plo[None, :, b]) < np.minimum(
+            phi[:, None, b], phi[None, :, b]
+        )
+    np.fill_diagonal(meet, False)
+    if np.any(meet):
+        i, j = (int(k) for k in np.argwhere(meet)[0])
+        return f"pieces {i} and {j} overlap"
+
+    def volume(low, high):
+        total = Fraction(1)
+        for b in free:
+            total *= Fraction(float(high[b])) - Fraction(float(low[b]))
+        return total
+
+    covered = sum((volume(plo[i], phi[i]) for i in range(plo.shape[0])), Fraction(0))
+    if covered != volume(lo, hi):
+        return (
+            f"no tiling: the pieces cover {float(covered):.17g} of the box's volume "
+            f"{float(volume(lo, hi)):.17g}"
+        )
     if np.any((centers < plo) | (centers > phi)):
         return "a piece's centre lies outside the piece"
     return ""

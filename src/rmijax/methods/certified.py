@@ -102,6 +102,14 @@ KERNEL_STEPS = 400
 
 _EPS = 2.0**-52
 _TINY = 2.0**-1000
+
+AUTO_MAX_PIECES = 64
+"""``certified_bounds(..., splits="auto")``: the most pieces the box is cut into."""
+
+AUTO_REFINE = 0.2
+"""``splits="auto"``: cut a piece whose remainder exceeds this share of the pieces' bands'
+half-width less their remainders (largest over steps and joints, per sensor)."""
+
 _AFFINE_BUFFER = 2_200_000  # bytes of affine jet buffers evaluated together (_affine_batch)
 
 
@@ -1129,6 +1137,19 @@ def split_ranking(traj: Trajectory, params: UncertainRobot, splits=1) -> list[tu
         raise ValueError(
             f"traj has {traj.n_joints} joints but params describes a {params.n_joints}-joint robot"
         )
+    rows = _mixed_rows(traj, params)
+    counts = np.asarray(_split_counts(params, splits))
+    radius = 0.5 * (np.asarray(params.hi) - np.asarray(params.lo))
+    score = radius / counts * rows
+    names = params.model.param_names
+    ranked = sorted(np.flatnonzero(radius > 0), key=lambda b: -score[b])
+    return [(names[b], float(score[b])) for b in ranked]
+
+
+def _mixed_rows(traj, params):
+    """(p,) ``max_k max_i sum_j |d/dth_b d gv_i / d x_j|`` along ``x_n`` at the nominal
+    parameters: how far a unit of parameter ``b`` moves the closed loop's state Jacobian
+    (:func:`split_ranking`)."""
     model, nominal = params.model, params.nominal
     kp, kd = traj.kp, traj.kd
 
@@ -1137,13 +1158,91 @@ def split_ranking(traj: Trajectory, params: UncertainRobot, splits=1) -> list[tu
 
     mixed = jax.jit(jax.vmap(jax.jacfwd(jax.jacfwd(gv, 0), 1), (0, None, 0)))
     jac = np.abs(np.asarray(mixed(traj.x_n[:-1], nominal, traj.u_d[:-1])))  # (T, n, n, 2, p)
-    rows = jac.sum(axis=(2, 3)).max(axis=(0, 1))  # (p,)
-    counts = np.asarray(_split_counts(params, splits))
-    radius = 0.5 * (np.asarray(params.hi) - np.asarray(params.lo))
-    score = radius / counts * rows
-    names = model.param_names
-    ranked = sorted(np.flatnonzero(radius > 0), key=lambda b: -score[b])
-    return [(names[b], float(score[b])) for b in ranked]
+    return jac.sum(axis=(2, 3)).max(axis=(0, 1))
+
+
+def _bisect(lo, hi, weights):
+    """Two halves of the piece ``[lo, hi]``, cut across the parameter with the largest
+    ``weights * (hi - lo)`` (the widest relative range where every weight is 0)."""
+    width = hi - lo
+    score = weights * width
+    if not np.any(score > 0):
+        score = np.where(width > 0, 1.0, 0.0)
+    b = int(np.argmax(score))
+    cut = 0.5 * (lo[b] + hi[b])
+    left_hi, right_lo = hi.copy(), lo.copy()
+    left_hi[b], right_lo[b] = cut, cut
+    return (lo, left_hi), (right_lo, hi)
+
+
+def _auto_boxes(traj, params, certify, max_pieces, refine):
+    """Adaptive bisection of the box (``splits="auto"``): ``(centers, los, his, pieces)``.
+
+    Starts from the whole box (expanded at the nominal); each round certifies the
+    pending pieces together (padded to a power of two, so rounds share compilations)
+    and cuts in two, across the parameter of :func:`_bisect` (weighted by
+    :func:`_mixed_rows`), every piece whose band is not finite; in a round where every
+    piece is finite, while ``max_pieces`` allows, the pieces whose remainder is loose
+    (worst first): the piece's largest remainder radius over steps and joints above
+    ``refine`` times the largest half-width of the pieces' bands without their
+    remainders, for either sensor. ``certify(boxes)`` maps
+    ``(centers, los, his)`` (P, p) to the pieces' arrays (leading axis P). Raises
+    :class:`DivergedError` when a piece still diverges and cutting it would pass
+    ``max_pieces``.
+    """
+    lo, hi = np.asarray(params.lo, np.float64), np.asarray(params.hi, np.float64)
+    weights = _mixed_rows(traj, params)
+    pending = [(np.asarray(params.nominal, np.float64), lo, hi)]
+    done = []  # (center, lo, hi, pieces' arrays of this piece)
+    while pending:
+        count = len(pending)
+        padded = 1 << (count - 1).bit_length()
+        boxes = tuple(
+            np.stack([box[i] for box in pending] + [pending[-1][i]] * (padded - count))
+            for i in range(3)
+        )
+        pieces = {key: np.asarray(value) for key, value in certify(boxes).items()}
+        diverged = []
+        for i, box in enumerate(pending):
+            lower, upper = pieces["lower"][i], pieces["upper"][i]
+            where = _checks.first_non_finite(upper, lower)
+            if where is not None:
+                diverged.append((box, where))
+            else:
+                done.append((*box, {key: value[i] for key, value in pieces.items()}))
+        # loose: a remainder above `refine` times the polynomial part of the bands
+        loose = []
+        if done:
+            radius = np.stack([np.max(e[3]["remainder"], axis=(0, 1)) for e in done])  # (P, 2)
+            half = np.stack([np.max(0.5 * (e[3]["upper"] - e[3]["lower"]), (0, 1)) for e in done])
+            scale = np.maximum(np.max(half - radius, axis=0), _TINY)  # (2,) per sensor
+            excess = np.max(radius / scale, axis=1)
+            loose = [(excess[j], j) for j in range(len(done)) if excess[j] > refine]
+        room = max_pieces - len(done) - 2 * len(diverged)
+        if diverged and room < 0:
+            box, where = diverged[0]
+            raise DivergedError.at(
+                where,
+                f"certified bounds are not finite (step {where[0]}, joint {where[1]} "
+                f"{DivergedError.SENSORS[where[2]]}) on {len(diverged)} of "
+                f"{len(done) + len(diverged)} pieces cut by bisection, and cutting them "
+                f"again would pass max_pieces={max_pieces}. Raise max_pieces, narrow the "
+                "parameter box or use stiffer gains.",
+            )
+        cut = [box for box, _ in diverged]
+        room = room if not diverged else 0  # finite first, then tight
+        for _, j in sorted(loose, key=lambda item: -item[0])[:room]:
+            cut.append(done[j][:3])
+            done[j] = None
+        done = [entry for entry in done if entry is not None]
+        pending = [
+            (0.5 * (half_lo + half_hi), half_lo, half_hi)
+            for _, piece_lo, piece_hi in cut
+            for half_lo, half_hi in _bisect(piece_lo, piece_hi, weights)
+        ]
+    centers, los, his = (np.stack([entry[i] for entry in done]) for i in range(3))
+    pieces = {key: np.stack([entry[3][key] for entry in done]) for key in done[0][3]}
+    return centers, los, his, pieces
 
 
 def _certify_box(
@@ -1159,6 +1258,8 @@ def _certify_box(
     enclosure="interval",
     propagate="kernel",
     solve="articulated",
+    max_pieces=None,
+    refine=None,
 ):
     """Split the box and certify every piece: ``(centers, los, his, pieces, kernel, tail)``.
 
@@ -1168,41 +1269,52 @@ def _certify_box(
     """
     noisy = bool(np.any(np.asarray(noise_lo) != 0) or np.any(np.asarray(noise_hi) != 0))
     layout = _layout(params)
-    boxes = _pieces(params, _split_counts(params, splits))  # (centers, los, his)
     lo, hi = np.asarray(params.lo), np.asarray(params.hi)
     free = tuple(int(b) for b in np.flatnonzero(hi > lo))
     if len(free) == lo.size:  # every parameter uncertain: nothing to fold
-        free, fixed, variables = None, None, boxes
+        free, fixed = None, None
     else:  # certain parameters are constants, not variables of the jets
         fixed = jnp.asarray(lo)
-        variables = tuple(a[:, list(free)] for a in boxes)
-    pieces, kernel, tail = _certify(
-        traj,
-        params,
-        *(jnp.asarray(a) for a in variables),
-        jnp.asarray(noise_lo),
-        jnp.asarray(noise_hi),
-        jnp.asarray(remainder_scale, jnp.asarray(noise_lo).dtype),
-        noisy=noisy,
-        kernel_steps=kernel_steps,
-        segments=segments,
-        diagnostics=diagnostics,
-        enclosure=enclosure,
-        propagate=propagate,
-        layout=layout,
-        free=free,
-        fixed=fixed,
-        solve=solve,
-    )
-    if free is not None:  # back to every parameter: the certain ones' coefficients are 0
-        rows = np.asarray(free, dtype=np.int32)
-        p = lo.size
-        sens, sens2 = pieces["sens"], pieces["sens2"]
-        full = jnp.zeros(sens.shape[:-1] + (p,), sens.dtype).at[..., rows].set(sens)
-        full2 = jnp.zeros(sens2.shape[:-2] + (p, p), sens2.dtype)
-        full2 = full2.at[..., rows[:, None], rows[None, :]].set(sens2)
-        pieces = pieces | dict(sens=full, sens2=full2)
-    return *boxes, pieces, kernel, tail
+    kernels = []  # the kernel and tail, the same on every call
+
+    def certify(boxes):
+        variables = boxes if free is None else tuple(a[:, list(free)] for a in boxes)
+        pieces, kernel, tail = _certify(
+            traj,
+            params,
+            *(jnp.asarray(a) for a in variables),
+            jnp.asarray(noise_lo),
+            jnp.asarray(noise_hi),
+            jnp.asarray(remainder_scale, jnp.asarray(noise_lo).dtype),
+            noisy=noisy,
+            kernel_steps=kernel_steps,
+            segments=segments,
+            diagnostics=diagnostics,
+            enclosure=enclosure,
+            propagate=propagate,
+            layout=layout,
+            free=free,
+            fixed=fixed,
+            solve=solve,
+        )
+        if free is not None:  # back to every parameter: the certain ones' coefficients are 0
+            rows = np.asarray(free, dtype=np.int32)
+            p = lo.size
+            sens, sens2 = pieces["sens"], pieces["sens2"]
+            full = jnp.zeros(sens.shape[:-1] + (p,), sens.dtype).at[..., rows].set(sens)
+            full2 = jnp.zeros(sens2.shape[:-2] + (p, p), sens2.dtype)
+            full2 = full2.at[..., rows[:, None], rows[None, :]].set(sens2)
+            pieces = pieces | dict(sens=full, sens2=full2)
+        kernels[:] = [kernel, tail]
+        return pieces
+
+    if isinstance(splits, str):  # "auto", as certified_bounds checked
+        *boxes, pieces = _auto_boxes(traj, params, certify, max_pieces, refine)
+        pieces = {key: jnp.asarray(value) for key, value in pieces.items()}
+    else:
+        boxes = _pieces(params, _split_counts(params, splits))  # (centers, los, his)
+        pieces = certify(boxes)
+    return *boxes, pieces, *kernels
 
 
 # --------------------------------------------------------------------------
@@ -1225,6 +1337,8 @@ def certified_bounds(
     enclosure: str | None = None,
     propagate: str | None = None,
     solve: str | None = None,
+    max_pieces: int = AUTO_MAX_PIECES,
+    refine: float = AUTO_REFINE,
 ) -> tuple[Bounds, Certificate]:
     """Bands proven to contain the output of every constant-parameter run, and their certificate.
 
@@ -1245,6 +1359,10 @@ def certified_bounds(
             ``{"coulomb[joint4]": 2}``; names from ``params.model.param_names``), or
             None: on the planar arm 4 up to two joints, 3 up to four (81 pieces at four
             joints: fewer diverge with the default enclosure), 2 above; on a chain 1.
+            Or ``"auto"``: adaptive bisection from the whole box, each piece whose band
+            is not finite or whose remainder is loose (see ``refine``) cut in two across
+            the parameter that moves the nominal loop most over the piece's range
+            (:func:`split_ranking`'s score), up to ``max_pieces`` pieces.
             The band is the union of the pieces' bands.
         kernel_steps: ``M``, powers of ``A`` applied exactly to the remainder.
         segments: ``J``, radial segments of the Lagrange remainder: the Hessian
@@ -1272,6 +1390,15 @@ def certified_bounds(
             no proof). None: articulated on the planar arm, preconditioned on a chain
             (where an articulated pivot's enclosure held 0 over the Panda's default
             masses and payload).
+        max_pieces: with ``splits="auto"``, the most pieces to cut the box into: a piece
+            still diverging beyond it raises :class:`DivergedError`; loose pieces stay
+            as they are.
+        refine: with ``splits="auto"``, once every piece is finite, a piece whose
+            largest remainder radius (over steps and joints, per sensor) exceeds
+            ``refine`` times the largest half-width of the pieces' bands less their
+            remainders is cut while ``max_pieces`` allows, largest first (a tightness
+            target: the remainder is what a band holds beyond the Taylor polynomial's
+            exact range).
 
     Returns:
         ``(bounds, certificate)``: :class:`~rmijax.methods.base.Bounds` with
@@ -1316,6 +1443,12 @@ def certified_bounds(
     enclosure = _choice("enclosure", enclosure, ("interval", "affine"), n)
     propagate = _choice("propagate", propagate, ("kernel", "carried"), n)
     solve = _solve_choice(solve, params)
+    if isinstance(splits, str):
+        if splits != "auto":
+            raise ValueError(f"splits must be a count, counts, a dict or 'auto', got {splits!r}")
+        max_pieces = _checks.positive_int("max_pieces", max_pieces, "pieces")
+        if not (isinstance(refine, int | float) and refine > 0):
+            raise ValueError(f"refine must be a number > 0, got {refine!r}")
     centers, los, his, pieces, kernel, tail = _certify_box(
         traj,
         params,
@@ -1328,6 +1461,8 @@ def certified_bounds(
         enclosure=enclosure,
         propagate=propagate,
         solve=solve,
+        max_pieces=max_pieces,
+        refine=refine,
     )
     lower = jnp.min(pieces["lower"], axis=0)
     upper = jnp.max(pieces["upper"], axis=0)
