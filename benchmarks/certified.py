@@ -66,7 +66,13 @@ from _common import run_meta  # noqa: E402
 
 import rmijax  # noqa: E402
 from rmijax.methods.base import DivergedError  # noqa: E402
-from rmijax.methods.certified import _choice, _solve_choice, certified_bounds  # noqa: E402
+from rmijax.methods.certified import (  # noqa: E402
+    AUTO_MAX_PIECES,
+    AUTO_REFINE,
+    _choice,
+    _solve_choice,
+    certified_bounds,
+)
 
 CASES = {
     "arm2_hold_sine": (rmijax.paper_arm2, ["hold", "sine"]),
@@ -193,7 +199,8 @@ def run_case(name, duration, draws, every, splits, options=None, warm=True):
         case=name,
         n=params.n_joints,
         pieces=int(cert.n_pieces),
-        **(dict(splits=splits) if isinstance(splits, dict) else {}),
+        **(dict(splits=splits) if isinstance(splits, dict | str) else {}),
+        **(_auto_options(options) if splits == "auto" else {}),
         enclosure=cert.enclosure,
         propagate=cert.propagate,
         solve=cert.solve,
@@ -463,13 +470,39 @@ def _attack(traj, params, upper, lower, run_high, run_low, arg_high, arg_low, sa
     )
 
 
+def _auto_options(options):
+    """``max_pieces`` and ``refine`` of a ``splits="auto"`` run, the defaults filled in."""
+    return dict(
+        max_pieces=options.get("max_pieces", AUTO_MAX_PIECES),
+        refine=options.get("refine", AUTO_REFINE),
+    )
+
+
+def _splits_arg(text):
+    """``--splits``: a count, or ``auto``."""
+    if text == "auto":
+        return text
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"a count or 'auto', got {text!r}") from None
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", nargs="+", default=list(CASES)[:4], choices=list(CASES))
     parser.add_argument("--duration", type=float, default=15.0, help="run length in s")
     parser.add_argument("--draws", type=int, default=1000, help="uniform parameter draws")
     parser.add_argument("--every", type=float, default=0.5, help="scored times, every s")
-    parser.add_argument("--splits", type=int, default=None, help="mass splits (default: auto)")
+    parser.add_argument(
+        "--splits",
+        type=_splits_arg,
+        default=None,
+        help="mass splits, or 'auto' (bisection; see --max-pieces, --refine); default: "
+        "the method's",
+    )
+    parser.add_argument("--max-pieces", type=int, default=None, help="with --splits auto")
+    parser.add_argument("--refine", type=float, default=None, help="with --splits auto")
     parser.add_argument(
         "--split",
         nargs="+",
@@ -506,6 +539,8 @@ def main(argv=None):
         "--checker", action="store_true", help="run the certificate checker on every pair"
     )
     args = parser.parse_args(argv)
+    if args.splits != "auto" and (args.max_pieces is not None or args.refine is not None):
+        parser.error("--max-pieces and --refine go with --splits auto")
     if args.split:
         if args.splits is not None:
             parser.error("give --splits or --split, not both")
@@ -552,6 +587,10 @@ def main(argv=None):
                 segments=args.segments,
                 solve=args.solve,
             )
+            if args.max_pieces is not None:
+                options["max_pieces"] = args.max_pieces
+            if args.refine is not None:
+                options["refine"] = args.refine
             row = run_case(
                 name,
                 args.duration,
@@ -564,8 +603,9 @@ def main(argv=None):
         except DivergedError as err:  # the bound blew up: record where, and go on
             seconds = round(time.perf_counter() - started, 2)
             row = dict(case=name, diverged=str(err), seconds=seconds)
-            if isinstance(args.splits, dict):
+            if isinstance(args.splits, dict | str):
                 row["splits"] = args.splits
+            row |= _auto_options(options) if args.splits == "auto" else {}
             params = CASES[name][0]()  # the options the default chooses for it
             n = params.n_joints
             row |= dict(

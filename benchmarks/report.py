@@ -394,7 +394,11 @@ def certified_table():
         arms = name == "certified_arms_cpu.json"
         default = ("affine", "carried") if arms else ("interval", "kernel")
         for r in data["rows"]:
-            cuts = ", ".join(f"`{k}` in {v}" for k, v in r.get("splits", {}).items())
+            splits = r.get("splits", {})
+            if splits == "auto":  # bisection (stop 33 on)
+                cuts = f"auto, refine {r['refine']}, at most {r['max_pieces']} pieces"
+            else:
+                cuts = ", ".join(f"`{k}` in {v}" for k, v in splits.items())
             case = f"`{r['case']}`" + (f" ({cuts})" if cuts else "")
             pair = f"{r.get('enclosure', default[0])} / {r.get('propagate', default[1])}"
             pair += f", {r['segments']} segment" if r.get("segments", 3) != 3 else ""

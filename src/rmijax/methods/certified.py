@@ -106,9 +106,9 @@ _TINY = 2.0**-1000
 AUTO_MAX_PIECES = 64
 """``certified_bounds(..., splits="auto")``: the most pieces the box is cut into."""
 
-AUTO_REFINE = 0.2
-"""``splits="auto"``: cut a piece whose remainder exceeds this share of the pieces' bands'
-half-width less their remainders (largest over steps and joints, per sensor)."""
+AUTO_REFINE = 0.5
+"""``splits="auto"``: cut a piece whose remainder exceeds this share of the rest of its
+band's half-width at the median step of some output."""
 
 _AFFINE_BUFFER = 2_200_000  # bytes of affine jet buffers evaluated together (_affine_batch)
 
@@ -1183,9 +1183,9 @@ def _auto_boxes(traj, params, certify, max_pieces, refine):
     and cuts in two, across the parameter of :func:`_bisect` (weighted by
     :func:`_mixed_rows`), every piece whose band is not finite; in a round where every
     piece is finite, while ``max_pieces`` allows, the pieces whose remainder is loose
-    (worst first): the piece's largest remainder radius over steps and joints above
-    ``refine`` times the largest half-width of the pieces' bands without their
-    remainders, for either sensor. ``certify(boxes)`` maps
+    (worst first): for some output, the median over steps ``k >= 1`` of the piece's
+    remainder radius over the rest of its band's half-width (Taylor polynomial and
+    noise) above ``refine``. ``certify(boxes)`` maps
     ``(centers, los, his)`` (P, p) to the pieces' arrays (leading axis P). Raises
     :class:`DivergedError` when a piece still diverges and cutting it would pass
     ``max_pieces``.
@@ -1210,14 +1210,15 @@ def _auto_boxes(traj, params, certify, max_pieces, refine):
                 diverged.append((box, where))
             else:
                 done.append((*box, {key: value[i] for key, value in pieces.items()}))
-        # loose: a remainder above `refine` times the polynomial part of the bands
+        # loose: a remainder above `refine` times the rest of the piece's band, at the
+        # median step (k >= 1) of some output
         loose = []
-        if done:
-            radius = np.stack([np.max(e[3]["remainder"], axis=(0, 1)) for e in done])  # (P, 2)
-            half = np.stack([np.max(0.5 * (e[3]["upper"] - e[3]["lower"]), (0, 1)) for e in done])
-            scale = np.maximum(np.max(half - radius, axis=0), _TINY)  # (2,) per sensor
-            excess = np.max(radius / scale, axis=1)
-            loose = [(excess[j], j) for j in range(len(done)) if excess[j] > refine]
+        for j, entry in enumerate(done):
+            radius = entry[3]["remainder"][1:]  # (T, n, 2)
+            rest = 0.5 * (entry[3]["upper"] - entry[3]["lower"])[1:] - radius
+            excess = float(np.max(np.median(radius / np.maximum(rest, _TINY), axis=0)))
+            if excess > refine:
+                loose.append((excess, j))
         room = max_pieces - len(done) - 2 * len(diverged)
         if diverged and room < 0:
             box, where = diverged[0]
@@ -1394,11 +1395,10 @@ def certified_bounds(
             still diverging beyond it raises :class:`DivergedError`; loose pieces stay
             as they are.
         refine: with ``splits="auto"``, once every piece is finite, a piece whose
-            largest remainder radius (over steps and joints, per sensor) exceeds
-            ``refine`` times the largest half-width of the pieces' bands less their
-            remainders is cut while ``max_pieces`` allows, largest first (a tightness
-            target: the remainder is what a band holds beyond the Taylor polynomial's
-            exact range).
+            remainder radius exceeds ``refine`` times the rest of its band's half-width
+            (the Taylor polynomial's range and the noise) at the median step of some
+            output is cut while ``max_pieces`` allows, largest first (a tightness
+            target: the remainder is what a band holds beyond the polynomial's range).
 
     Returns:
         ``(bounds, certificate)``: :class:`~rmijax.methods.base.Bounds` with
