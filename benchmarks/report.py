@@ -376,8 +376,12 @@ CERTIFIED_FILES = (
     "certified_preset4_affine_cpu.json",
     "certified_preset4_affine_seg1_cpu.json",
     "certified_arms_cpu.json",
+    "certified_arms_iiwa14_cpu.json",
     "certified_arms_box_cpu.json",
     "certified_arms_split_cpu.json",
+    "certified_auto_cpu.json",
+    "certified_auto_preset4_cpu.json",
+    "certified_auto_panda_cpu.json",
 )
 """Results of ``benchmarks/certified.py``, in the order the table lists them."""
 
