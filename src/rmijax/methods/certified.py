@@ -102,6 +102,7 @@ KERNEL_STEPS = 400
 
 _EPS = 2.0**-52
 _TINY = 2.0**-1000
+_NEGLIGIBLE = 1e-250  # a remainder radius this small is only the _TINY padding of the steps
 
 AUTO_MAX_PIECES = 64
 """``certified_bounds(..., splits="auto")``: the most pieces the box is cut into."""
@@ -1179,7 +1180,8 @@ def _auto_boxes(traj, params, certify, max_pieces, refine):
     """Adaptive bisection of the box (``splits="auto"``): ``(centers, los, his, pieces)``.
 
     Starts from the whole box (expanded at the nominal); each round certifies the
-    pending pieces together (padded to a power of two, so rounds share compilations)
+    pending pieces together (padded to a power of two, so rounds whose counts round up
+    alike share a compilation)
     and cuts in two, across the parameter of :func:`_bisect` (weighted by
     :func:`_mixed_rows`), every piece whose band is not finite; in a round where every
     piece is finite, while ``max_pieces`` allows, the pieces whose remainder is loose
@@ -1216,7 +1218,9 @@ def _auto_boxes(traj, params, certify, max_pieces, refine):
         for j, entry in enumerate(done):
             radius = entry[3]["remainder"][1:]  # (T, n, 2)
             rest = 0.5 * (entry[3]["upper"] - entry[3]["lower"])[1:] - radius
-            excess = float(np.max(np.median(radius / np.maximum(rest, _TINY), axis=0)))
+            # an output with no remainder to speak of is not loose, even with no range
+            ratio = np.where(radius > _NEGLIGIBLE, radius / np.maximum(rest, _TINY), 0.0)
+            excess = float(np.max(np.median(ratio, axis=0)))
             if excess > refine:
                 loose.append((excess, j))
         room = max_pieces - len(done) - 2 * len(diverged)
