@@ -1451,8 +1451,7 @@ def certified_bounds(
         if splits != "auto":
             raise ValueError(f"splits must be a count, counts, a dict or 'auto', got {splits!r}")
         max_pieces = _checks.positive_int("max_pieces", max_pieces, "pieces")
-        if not (isinstance(refine, int | float) and refine > 0):
-            raise ValueError(f"refine must be a number > 0, got {refine!r}")
+        refine = _checks.real("refine", refine, positive=True)
     centers, los, his, pieces, kernel, tail = _certify_box(
         traj,
         params,
