@@ -448,10 +448,11 @@ def _tiling_error(cert, params):
         return total
 
     covered = sum((volume(plo[i], phi[i]) for i in range(plo.shape[0])), Fraction(0))
-    if covered != volume(lo, hi):
+    whole = volume(lo, hi)
+    if covered != whole:
         return (
             f"no tiling: the pieces cover {float(covered):.17g} of the box's volume "
-            f"{float(volume(lo, hi)):.17g}"
+            f"{float(whole):.17g}"
         )
     if np.any((centers < plo) | (centers > phi)):
         return "a piece's centre lies outside the piece"

@@ -1176,18 +1176,26 @@ def _bisect(lo, hi, weights):
     return (lo, left_hi), (right_lo, hi)
 
 
+def _looseness(piece):
+    """How loose one finished piece's remainder is: the largest over outputs of the median
+    over steps ``k >= 1`` of its remainder radius over the rest of its band's half-width
+    (Taylor polynomial and noise); ``piece`` is its arrays (no leading piece axis)."""
+    radius = piece["remainder"][1:]  # (T, n, 2)
+    rest = 0.5 * (piece["upper"] - piece["lower"])[1:] - radius
+    # an output with no remainder to speak of is not loose, even with no range
+    ratio = np.where(radius > _NEGLIGIBLE, radius / np.maximum(rest, _TINY), 0.0)
+    return float(np.max(np.median(ratio, axis=0)))
+
+
 def _auto_boxes(traj, params, certify, max_pieces, refine):
     """Adaptive bisection of the box (``splits="auto"``): ``(centers, los, his, pieces)``.
 
     Starts from the whole box (expanded at the nominal); each round certifies the
     pending pieces together (padded to a power of two, so rounds whose counts round up
-    alike share a compilation)
-    and cuts in two, across the parameter of :func:`_bisect` (weighted by
+    alike share a compilation) and cuts in two, across the parameter of :func:`_bisect` (weighted by
     :func:`_mixed_rows`), every piece whose band is not finite; in a round where every
-    piece is finite, while ``max_pieces`` allows, the pieces whose remainder is loose
-    (worst first): for some output, the median over steps ``k >= 1`` of the piece's
-    remainder radius over the rest of its band's half-width (Taylor polynomial and
-    noise) above ``refine``. ``certify(boxes)`` maps
+    piece is finite, while ``max_pieces`` allows, the pieces whose
+    :func:`_looseness` is above ``refine`` (worst first). ``certify(boxes)`` maps
     ``(centers, los, his)`` (P, p) to the pieces' arrays (leading axis P). Raises
     :class:`DivergedError` when a piece still diverges and cutting it would pass
     ``max_pieces``.
@@ -1195,7 +1203,7 @@ def _auto_boxes(traj, params, certify, max_pieces, refine):
     lo, hi = np.asarray(params.lo, np.float64), np.asarray(params.hi, np.float64)
     weights = _mixed_rows(traj, params)
     pending = [(np.asarray(params.nominal, np.float64), lo, hi)]
-    done = []  # (center, lo, hi, pieces' arrays of this piece)
+    done = []  # (center, lo, hi, pieces' arrays of this piece, looseness)
     while pending:
         count = len(pending)
         padded = 1 << (count - 1).bit_length()
@@ -1206,23 +1214,12 @@ def _auto_boxes(traj, params, certify, max_pieces, refine):
         pieces = {key: np.asarray(value) for key, value in certify(boxes).items()}
         diverged = []
         for i, box in enumerate(pending):
-            lower, upper = pieces["lower"][i], pieces["upper"][i]
-            where = _checks.first_non_finite(upper, lower)
+            arrays = {key: value[i] for key, value in pieces.items()}
+            where = _checks.first_non_finite(arrays["upper"], arrays["lower"])
             if where is not None:
                 diverged.append((box, where))
             else:
-                done.append((*box, {key: value[i] for key, value in pieces.items()}))
-        # loose: a remainder above `refine` times the rest of the piece's band, at the
-        # median step (k >= 1) of some output
-        loose = []
-        for j, entry in enumerate(done):
-            radius = entry[3]["remainder"][1:]  # (T, n, 2)
-            rest = 0.5 * (entry[3]["upper"] - entry[3]["lower"])[1:] - radius
-            # an output with no remainder to speak of is not loose, even with no range
-            ratio = np.where(radius > _NEGLIGIBLE, radius / np.maximum(rest, _TINY), 0.0)
-            excess = float(np.max(np.median(ratio, axis=0)))
-            if excess > refine:
-                loose.append((excess, j))
+                done.append((*box, arrays, _looseness(arrays)))
         room = max_pieces - len(done) - 2 * len(diverged)
         if diverged and room < 0:
             box, where = diverged[0]
@@ -1235,11 +1232,12 @@ def _auto_boxes(traj, params, certify, max_pieces, refine):
                 "parameter box or use stiffer gains.",
             )
         cut = [box for box, _ in diverged]
-        room = room if not diverged else 0  # finite first, then tight
-        for _, j in sorted(loose, key=lambda item: -item[0])[:room]:
-            cut.append(done[j][:3])
-            done[j] = None
-        done = [entry for entry in done if entry is not None]
+        if not diverged:  # finite first, then tight: the loosest while room allows
+            loose = [j for j, entry in enumerate(done) if entry[4] > refine]
+            chosen = sorted(loose, key=lambda j: -done[j][4])[:room]
+            cut += [done[j][:3] for j in chosen]
+            skip = set(chosen)
+            done = [entry for j, entry in enumerate(done) if j not in skip]
         pending = [
             (0.5 * (half_lo + half_hi), half_lo, half_hi)
             for _, piece_lo, piece_hi in cut
