@@ -12,7 +12,7 @@ import pytest
 import rmijax
 from rmijax.methods.base import DivergedError
 from rmijax.methods.certificate_check import _tiling_error, check_certificate
-from rmijax.methods.certified import certified_bounds
+from rmijax.methods.certified import _in_chunks, certified_bounds
 
 TOL = 1e-12  # rounding level: the simulator's own float64 error on |y| ~ 1
 
@@ -105,3 +105,20 @@ def test_tiling_of_pieces_that_are_not_a_grid():
     centers = 0.5 * (np.asarray(lo) + np.asarray(hi))
     centers[2, 0] = 0.9
     assert "centre" in _tiling_error(_cert(lo, hi, centers), box)
+
+
+def test_rounds_are_evaluated_in_chunks_of_one_size():
+    """Every call gets ``chunk`` boxes (one compilation for all rounds), the last chunk
+    padded with copies, and the pieces come back in order with the padding dropped."""
+    shapes = []
+
+    def certify(boxes):
+        shapes.append(tuple(a.shape for a in boxes))
+        centers = boxes[0]
+        return {"upper": centers + 1.0, "lower": centers - 1.0}
+
+    pending = [(np.full(2, float(i)), np.full(2, i - 0.5), np.full(2, i + 0.5)) for i in range(7)]
+    pieces = _in_chunks(certify, pending, 3)
+    assert shapes == [((3, 2),) * 3] * 3
+    np.testing.assert_array_equal(pieces["upper"][:, 0], np.arange(7) + 1.0)
+    np.testing.assert_array_equal(pieces["lower"][:, 1], np.arange(7) - 1.0)

@@ -111,6 +111,11 @@ AUTO_REFINE = 0.5
 """``splits="auto"``: cut a piece whose remainder exceeds this share of the rest of its
 band's half-width at the median step of some output."""
 
+AUTO_CHUNK = 4
+"""``splits="auto"`` with interval jets: pieces certified together per call, every call
+the same size so that one compilation serves all rounds (affine jets use
+:func:`_affine_batch`'s size)."""
+
 _AFFINE_BUFFER = 2_200_000  # bytes of affine jet buffers evaluated together (_affine_batch)
 
 
@@ -1187,17 +1192,31 @@ def _looseness(piece):
     return float(np.max(np.median(ratio, axis=0)))
 
 
-def _auto_boxes(traj, params, certify, max_pieces, refine):
+def _in_chunks(certify, pending, chunk):
+    """``certify`` on the boxes ``pending`` (a list of ``(center, lo, hi)``), ``chunk`` at
+    a time, the last chunk padded with copies of its last box: every call has the same
+    shapes, so one compilation serves every round. The pieces' arrays, numpy, leading
+    axis ``len(pending)``."""
+    outs = []
+    for start in range(0, len(pending), chunk):
+        part = pending[start : start + chunk]
+        part = part + [part[-1]] * (chunk - len(part))
+        boxes = tuple(np.stack([box[i] for box in part]) for i in range(3))
+        outs.append({key: np.asarray(value) for key, value in certify(boxes).items()})
+    return {key: np.concatenate([out[key] for out in outs])[: len(pending)] for key in outs[0]}
+
+
+def _auto_boxes(traj, params, certify, max_pieces, refine, chunk=1):
     """Adaptive bisection of the box (``splits="auto"``): ``(centers, los, his, pieces)``.
 
     Starts from the whole box (expanded at the nominal); each round certifies the
-    pending pieces together (padded to a power of two, so rounds whose counts round up
-    alike share a compilation) and cuts in two, across the parameter of :func:`_bisect` (weighted by
+    pending pieces, ``chunk`` at a time (:func:`_in_chunks`: one compilation for every
+    round), and cuts in two, across the parameter of :func:`_bisect` (weighted by
     :func:`_mixed_rows`), every piece whose band is not finite; in a round where every
     piece is finite, while ``max_pieces`` allows, the pieces whose
     :func:`_looseness` is above ``refine`` (worst first). ``certify(boxes)`` maps
-    ``(centers, los, his)`` (P, p) to the pieces' arrays (leading axis P). Raises
-    :class:`DivergedError` when a piece still diverges and cutting it would pass
+    ``(centers, los, his)`` (chunk, p) to the pieces' arrays (leading axis chunk).
+    Raises :class:`DivergedError` when a piece still diverges and cutting it would pass
     ``max_pieces``.
     """
     lo, hi = np.asarray(params.lo, np.float64), np.asarray(params.hi, np.float64)
@@ -1205,13 +1224,7 @@ def _auto_boxes(traj, params, certify, max_pieces, refine):
     pending = [(np.asarray(params.nominal, np.float64), lo, hi)]
     done = []  # (center, lo, hi, pieces' arrays of this piece, looseness)
     while pending:
-        count = len(pending)
-        padded = 1 << (count - 1).bit_length()
-        boxes = tuple(
-            np.stack([box[i] for box in pending] + [pending[-1][i]] * (padded - count))
-            for i in range(3)
-        )
-        pieces = {key: np.asarray(value) for key, value in certify(boxes).items()}
+        pieces = _in_chunks(certify, pending, chunk)
         diverged = []
         for i, box in enumerate(pending):
             arrays = {key: value[i] for key, value in pieces.items()}
@@ -1312,7 +1325,13 @@ def _certify_box(
         return pieces
 
     if isinstance(splits, str):  # "auto", as certified_bounds checked
-        *boxes, pieces = _auto_boxes(traj, params, certify, max_pieces, refine)
+        if enclosure == "affine":  # the batch that keeps the affine buffers in cache
+            variables = lo.size if free is None else len(free)
+            precond = solve == "preconditioned"
+            chunk = _affine_batch(layout, traj.n_joints, lo.size, variables, noisy, precond)
+        else:
+            chunk = AUTO_CHUNK
+        *boxes, pieces = _auto_boxes(traj, params, certify, max_pieces, refine, chunk)
         pieces = {key: jnp.asarray(value) for key, value in pieces.items()}
     else:
         boxes = _pieces(params, _split_counts(params, splits))  # (centers, los, his)
