@@ -6,13 +6,15 @@ from __future__ import annotations
 import dataclasses
 import types
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import rmijax
+from rmijax import _checks
 from rmijax.methods.base import DivergedError
 from rmijax.methods.certificate_check import _tiling_error, check_certificate
-from rmijax.methods.certified import _in_chunks, certified_bounds
+from rmijax.methods.certified import KERNEL_STEPS, _certify, _in_chunks, certified_bounds
 
 TOL = 1e-12  # rounding level: the simulator's own float64 error on |y| ~ 1
 
@@ -122,3 +124,32 @@ def test_rounds_are_evaluated_in_chunks_of_one_size():
     assert shapes == [((3, 2),) * 3] * 3
     np.testing.assert_array_equal(pieces["upper"][:, 0], np.arange(7) + 1.0)
     np.testing.assert_array_equal(pieces["lower"][:, 1], np.arange(7) - 1.0)
+
+
+def test_diverged_pieces_skip_their_remaining_steps(wide_pendulum):
+    """A piece whose remainder stopped being finite skips the rest of the run (its
+    outputs ``inf`` from the next step) once every piece certified with it has diverged;
+    next to a finite piece it runs on, and neither changes the other's result."""
+    traj, params, _, cert = wide_pendulum
+    whole = (np.asarray(params.nominal), np.asarray(params.lo), np.asarray(params.hi))
+    piece = tuple(np.asarray(a)[0] for a in (cert.center, cert.lo, cert.hi))
+    noise = jnp.zeros((1, 2))
+
+    def run(*boxes):
+        arrays = (jnp.asarray(np.stack([box[i] for box in boxes])) for i in range(3))
+        pieces, _, _ = _certify(
+            traj, params, *arrays, noise, noise, jnp.asarray(1.0),
+            noisy=False, kernel_steps=KERNEL_STEPS, segments=3,
+        )  # fmt: skip
+        return {key: np.asarray(value) for key, value in pieces.items()}
+
+    alone, finite, both = run(whole), run(piece), run(whole, piece)
+    first = _checks.first_non_finite(alone["upper"][0], alone["lower"][0])[0]
+    assert 0 < first < traj.n_steps
+    assert np.all(alone["remainder"][0, first + 1 :] == np.inf)  # skipped, not computed
+    assert np.all(np.isfinite(alone["remainder"][0, :first]))
+    assert _checks.first_non_finite(both["upper"][0], both["lower"][0])[0] == first
+    assert not np.all(both["remainder"][0, first + 1 :] == np.inf)  # ran on beside piece
+    for key in ("upper", "lower", "remainder"):
+        assert np.all(np.isfinite(both[key][1]))
+        np.testing.assert_allclose(both[key][1], finite[key][0], rtol=1e-12, atol=1e-300)

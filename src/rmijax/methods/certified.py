@@ -116,6 +116,8 @@ AUTO_CHUNK = 4
 the same size so that one compilation serves all rounds (affine jets use
 :func:`_affine_batch`'s size)."""
 
+_PIECES = "pieces"  # the vmapped axis of pieces certified together (_certify)
+
 _AFFINE_BUFFER = 2_200_000  # bytes of affine jet buffers evaluated together (_affine_batch)
 
 
@@ -699,6 +701,7 @@ def _certify_piece(
     free=None,
     fixed=None,
     matrix_fn=None,
+    axis_name=None,
 ):
     """The Taylor-model induction over the whole run for one piece of the box.
 
@@ -708,7 +711,9 @@ def _certify_piece(
     others. With ``matrix_fn`` (static, :func:`solve_matrix`) the solve is preconditioned
     by its inverse at each step's centre. With ``diagnostics`` (static) the output also
     holds ``w_blocks`` (T, n, 10):
-    ``w_k`` split by source (see :func:`_w_blocks`).
+    ``w_k`` split by source (see :func:`_w_blocks`). Once the remainder radius is not
+    finite the remaining steps are skipped (their outputs set to ``inf``); under a
+    ``vmap`` named ``axis_name`` only once every piece's is not finite.
     """
     n = traj.n_joints
     p = center.shape[0]
@@ -735,6 +740,22 @@ def _certify_piece(
     columns = 2 * n * n_steps if carried else 1  # the remainder's generators
 
     def step(carry, u):
+        rhat = carry[5]
+        alive = jnp.all(jnp.isfinite(rhat))
+        if axis_name is not None:  # pieces certified together stop when all have diverged
+            alive = jax.lax.pmax(alive.astype(jnp.int32), axis_name) > 0
+        return jax.lax.cond(alive, live_step, dead_step, carry, u)
+
+    def dead_step(carry, u):
+        """After the remainder stopped being finite (every band from here on is not finite,
+        as it would be with ``live_step``): skip the work."""
+        shapes = jax.eval_shape(live_step, carry, u)
+        rhat = jnp.full_like(carry[5], jnp.inf)
+        carry = (*carry[:5], rhat, *carry[6:8], carry[8] + 1)
+        outputs = jax.tree_util.tree_map(lambda s: jnp.full(s.shape, jnp.inf, s.dtype), shapes[1])
+        return carry, outputs
+
+    def live_step(carry, u):
         xc, sens, sens2, buf, tail_max, rhat, gens, gens_d, k = carry
         consts = dict(nominal=nominal, u=u, kp=kp, kd=kd, fixed=fixed)
         if matrix_fn is not None:
@@ -1024,16 +1045,27 @@ def _certify(
         free=free,
         fixed=fixed,
         matrix_fn=solve_matrix(params) if solve == "preconditioned" else None,
+        axis_name=_PIECES,
     )
     n, p = traj.n_joints, params.n_params
     if enclosure == "affine":
         batch = _affine_batch(layout, n, p, centers.shape[1], noisy, solve == "preconditioned")
     else:
         batch = centers.shape[0]
-    if batch < centers.shape[0]:  # pieces in batches: the affine jets' buffers are large
-        pieces = jax.lax.map(lambda a: run(*a), (centers, los, his), batch_size=batch)
-    else:
-        pieces = jax.vmap(run)(centers, los, his)
+    count = centers.shape[0]
+    batch = min(batch, count)
+    groups = -(-count // batch)
+    together = jax.vmap(run, axis_name=_PIECES)
+    if groups == 1:
+        pieces = together(centers, los, his)
+    else:  # pieces in batches: the affine jets' buffers are large
+        pad = groups * batch - count  # copies of the last piece, dropped below
+        boxes = [
+            jnp.concatenate([a, jnp.repeat(a[-1:], pad, axis=0)]).reshape(groups, batch, -1)
+            for a in (centers, los, his)
+        ]
+        pieces = jax.lax.map(lambda a: together(*a), tuple(boxes))
+        pieces = jax.tree_util.tree_map(lambda v: v.reshape((-1,) + v.shape[2:])[:count], pieces)
     return pieces, kernel, tail
 
 
