@@ -436,10 +436,12 @@ def simulate_batch(
     return x_true, y_meas
 
 
-def _certified_body(run, shared, *, noisy, kernel_steps, segments, enclosure, propagate):
+def _certified_body(
+    run, shared, *, noisy, kernel_steps, segments, enclosure, propagate, layout, free, solve
+):
     from rmijax.methods import certified
 
-    traj, params, centers, los, his = run
+    traj, params, centers, los, his, fixed = run
     noise_lo, noise_hi, scale = shared
     pieces, _, _ = certified._certify(
         traj,
@@ -455,6 +457,10 @@ def _certified_body(run, shared, *, noisy, kernel_steps, segments, enclosure, pr
         segments=segments,
         enclosure=enclosure,
         propagate=propagate,
+        layout=layout,
+        free=free,
+        fixed=None if free is None else fixed,
+        solve=solve,
     )
     return jnp.min(pieces["lower"], axis=0), jnp.max(pieces["upper"], axis=0)
 
@@ -470,16 +476,20 @@ def certified_batch(
     segments: int = 3,
     enclosure: str | None = None,
     propagate: str | None = None,
+    solve: str | None = None,
     mesh: Mesh | None = None,
 ) -> list[Bounds]:
     """:func:`rmijax.methods.certified.certified_bounds` of many runs, sharded like
     :func:`rmi_batch` (the bands only; the certificates stay with the single-run call).
 
     Args:
-        trajs, params: as :func:`rmi_batch` (planar point-mass arms, float64; every
-            box split into the same number of pieces).
-        noise_lo, noise_hi, splits, kernel_steps, segments, enclosure, propagate: as
-            ``certified_bounds``.
+        trajs, params: as :func:`rmi_batch`, float64: planar point-mass arms, or the
+            serial chains of :func:`rmijax.load_robot` (one model for every run);
+            every box split into the same number of pieces (``splits="auto"`` is for
+            the single-run call). Parameters certain in every box (``lo == hi``) are
+            constants of the jets, as in the single-run call.
+        noise_lo, noise_hi, splits, kernel_steps, segments, enclosure, propagate, solve:
+            as ``certified_bounds``.
         mesh: default :func:`device_mesh` over every device.
 
     Returns:
@@ -488,19 +498,24 @@ def certified_batch(
     from rmijax import _checks
     from rmijax.methods import certified
     from rmijax.methods.base import DivergedError, check_types
-    from rmijax.robots.structure import PlanarPointMass
 
     trajs = _as_list(trajs, Trajectory, "trajs")
     robots = _as_list(params, UncertainRobot, "params")
     size, (trajs, robots) = _broadcast([trajs, robots], ["trajs", "params"])
-    for traj, robot in zip(trajs, robots, strict=True):
+    layout = certified._layout(robots[0])  # refuses a model it cannot evaluate
+    free = tuple(int(b) for b in np.flatnonzero(np.asarray(robots[0].hi > robots[0].lo)))
+    for r, (traj, robot) in enumerate(zip(trajs, robots, strict=True)):
         check_types(traj, robot)
-        if not isinstance(robot.model.structure, PlanarPointMass):
-            raise NotImplementedError(
-                "certified_batch shards the planar point-mass arm only, got model "
-                f"{robot.model.name!r}: for a loaded arm call rmijax.certified_bounds "
-                "per run (on a small box: see docs/methods.md, section 7)"
+        certified._layout(robot)
+        if layout is not None and robot.model != robots[0].model:
+            raise ValueError(
+                f"params[{r}] (model {robot.model.name!r}) is not the model of params[0] "
+                f"({robots[0].model.name!r}): certified_batch needs one loaded chain for "
+                "every run; load the arm once and make each run's box with "
+                "params.with_box(lo=..., hi=...) (call it once per arm)"
             )
+        if tuple(int(b) for b in np.flatnonzero(np.asarray(robot.hi > robot.lo))) != free:
+            free = ()  # boxes differ in what is certain: every parameter a variable
         if jnp.result_type(traj.dtype, robot.dtype) != jnp.float64:
             raise ValueError("certified bounds work in float64: enable jax_enable_x64")
         if robot.n_joints != traj.n_joints:
@@ -513,13 +528,23 @@ def certified_batch(
     kernel_steps = certified.KERNEL_STEPS if kernel_steps is None else kernel_steps
     kernel_steps = _checks.positive_int("kernel_steps", kernel_steps, "steps")
     segments = _checks.positive_int("segments", segments)
+    if isinstance(splits, str):
+        raise ValueError(
+            f"certified_batch splits every box into one grid, got splits={splits!r}: give "
+            "counts, or call rmijax.certified_bounds(..., splits='auto') per run"
+        )
+    solve = certified._solve_choice(solve, robots[0])
+    if free == () or len(free) == robots[0].n_params:
+        free = None  # every parameter uncertain, or not the same ones: nothing to fold
     boxes = [certified._pieces(r, certified._split_counts(r, splits)) for r in robots]
+    if free is not None:  # certain parameters are constants of the jets, not variables
+        boxes = [tuple(a[:, list(free)] for a in box) for box in boxes]
     if len({b[0].shape for b in boxes}) > 1:
         raise ValueError("every box must split into the same number of pieces (give splits=)")
     lengths = [t.n_steps + 1 for t in trajs]
     trajs = _same_grid(trajs)
     runs = [
-        (t, r, *(jnp.asarray(a, jnp.float64) for a in box))
+        (t, r, *(jnp.asarray(a, jnp.float64) for a in box), jnp.asarray(r.lo, jnp.float64))
         for t, r, box in zip(trajs, robots, boxes, strict=True)
     ]
     mesh = device_mesh() if mesh is None else mesh
@@ -532,6 +557,9 @@ def certified_batch(
         segments=segments,
         enclosure=enclosure,
         propagate=propagate,
+        layout=layout,
+        free=free,
+        solve=solve,
     )
     lower, upper = _run_batched(_certified_body, _stack(runs, mesh.size), shared, mesh, static)
     results = []
