@@ -58,6 +58,13 @@ bounded?
     python benchmarks/certified_enclosure.py --induction \\
         --json benchmarks/results/certified_induction_cpu.json
 
+With ``--arms`` (a few minutes) it sets ``certified``'s remainder radius on the shipped
+arms' whole default box against the true remainder of the same Taylor model, from sampled
+runs (``arm_remainder_row``):
+
+    python benchmarks/certified_enclosure.py --arms \\
+        --json benchmarks/results/certified_arm_remainder_cpu.json
+
 With ``--union`` (about 15 minutes) every piece is replayed that way and the union of
 their bands set against sampled constant-parameter runs (``union_row``):
 
@@ -961,6 +968,76 @@ def union_row(n, splits, steps, draws=1000, seed=0):
     )
 
 
+ARM_CASES = ("ur5e_box", "panda_box", "iiwa14_box")
+"""``--arms``: the shipped arms under their whole default box (``benchmarks/certified.py``'s
+cases of those names: the first steps of ``rmijax --robot``'s move)."""
+
+
+def arm_remainder_row(case, duration=0.1, draws=400, corners=400, seed=0):
+    """On a loaded arm: ``certified``'s remainder radius (one piece, its defaults:
+    affine/carried, preconditioned solve; until it stops being finite) against the
+    *true* remainder of the same Taylor model, ``max |x_k(th) - (x_c + S_k d + 1/2
+    Q_k[d, d])|`` over ``draws`` uniform points and ``corners`` random corners of the box
+    (runs of :func:`rmijax.simulate`; a lower bound of what the radius must cover), per
+    step and sensor (largest joint). Where the radius is far above the truth the
+    enclosure of ``gv``'s Hessian over the tube is what fails, not the second-order
+    model. Also ``w_k`` (rad/s^2, largest joint) and, per step, the blocks of its
+    quadratic part: the mass scales (m, "mm"), the other parameters (payload, friction:
+    "l") and the remainder (x)."""
+    from certified import CASES  # benchmarks/certified.py: the same cases
+
+    build, motion = CASES[case]
+    params, traj = build(), motion(duration)
+    n = traj.n_joints
+    zeros = jnp.zeros((n, 2))
+    started = time.perf_counter()
+    options = dict(enclosure="affine", propagate="carried", solve="preconditioned")
+    out = _certify_box(traj, params, zeros, zeros, 1, diagnostics=True, **options)
+    seconds = time.perf_counter() - started
+    piece = {key: np.asarray(value)[0] for key, value in out[3].items()}
+    lo, hi = np.asarray(params.lo), np.asarray(params.hi)
+    rng = np.random.default_rng(seed)
+    bits = rng.integers(0, 2, size=(corners, lo.size)).astype(bool)
+    ths = np.concatenate(
+        [lo + (hi - lo) * rng.uniform(size=(draws, lo.size)), np.where(bits, hi, lo)]
+    )
+    states = np.asarray(rmijax.simulate(traj, params, ths)[0])  # (runs, T+1, n, 2)
+    d = ths - np.asarray(params.nominal)
+    model = (
+        piece["state"][None]
+        + np.einsum("tijb,sb->stij", piece["sens"], d)
+        + 0.5 * np.einsum("tijbc,sb,sc->stij", piece["sens2"], d, d)
+    )
+    true = np.abs(states - model).max(axis=(0, 2))  # (T+1, 2)
+    radius = piece["remainder"].max(axis=1)  # (T+1, 2)
+    spread = (states.max(axis=0) - states.min(axis=0)).max(axis=1)
+    blocks = piece["w_blocks"]  # (T, n, 10)
+    steps = []
+    for k in range(1, traj.n_steps + 1):
+        if not np.all(np.isfinite(piece["remainder"][k])):
+            break
+        joint = int(np.argmax(blocks[k - 1, :, 1:].sum(axis=-1)))
+        steps.append(
+            dict(
+                step=k,
+                radius=[float(v) for v in radius[k]],
+                true=[float(v) for v in true[k]],
+                spread=[float(v) for v in spread[k]],
+                w=float(blocks[k - 1, joint].sum()),
+                w_joint=joint,
+                w_blocks={b: float(v) for b, v in zip(BLOCKS, blocks[k - 1, joint], strict=True)},
+            )
+        )
+    return dict(
+        case=case,
+        duration=duration,
+        runs=int(ths.shape[0]),
+        finite_steps=len(steps),
+        seconds=round(seconds, 1),
+        steps=steps,
+    )
+
+
 def _certificate_remainder(row, steps):
     """The largest relative difference between an interval replay's remainder and the
     certificate's own, for the same piece over the same steps (1 s sine)."""
@@ -1082,6 +1159,12 @@ def main(argv=None):
     parser.add_argument(
         "--union-steps", type=int, default=100, help="--union: steps replayed (100 = 1 s)"
     )
+    parser.add_argument(
+        "--arms",
+        action="store_true",
+        help="only the remainder radius against the true remainder on the shipped arms' "
+        "default box (arm_remainder_row), minutes",
+    )
     parser.add_argument("--json", default=None, help="write results here")
     args = parser.parse_args(argv)
     meta = run_meta("benchmarks/certified_enclosure.py", argv, dtype="float64")
@@ -1095,6 +1178,19 @@ def main(argv=None):
                 print(f"{r['step']:>4}  {r['w']:>10.3g}  {shares}")
         if args.json:
             write_json(args.json, dict(blocks=rows), meta)
+        return
+    if args.arms:
+        rows = [arm_remainder_row(case) for case in ARM_CASES]
+        for row in rows:
+            print(f"{row['case']}: {row['finite_steps']} finite steps, {row['seconds']} s")
+            print("step  radius qd  true qd  radius/true qd  spread qd  w_k (rad/s^2)")
+            for r in row["steps"]:
+                print(
+                    f"{r['step']:>4}  {r['radius'][1]:9.3g}  {r['true'][1]:7.3g}  "
+                    f"{r['radius'][1] / r['true'][1]:14.1f}  {r['spread'][1]:9.3g}  {r['w']:.3g}"
+                )
+        if args.json:
+            write_json(args.json, dict(arms=rows), meta)
         return
     if args.tube:
         rows = [tube_row(2, 4, (0, 1, 2, 3, 9)), tube_row(4, 2, (0, 1, 2, 3))]
