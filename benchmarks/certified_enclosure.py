@@ -65,6 +65,13 @@ runs (``arm_remainder_row``):
     python benchmarks/certified_enclosure.py --arms \\
         --json benchmarks/results/certified_arm_remainder_cpu.json
 
+With ``--parts`` (about 15 minutes) it certifies each arm's move (``--duration``, 1 s)
+under parts of that box (``BOX_PARTS``: with and without Coulomb friction, ...) and
+records where each diverges (``box_part_row``):
+
+    python benchmarks/certified_enclosure.py --parts \\
+        --json benchmarks/results/certified_box_parts_cpu.json
+
 With ``--union`` (about 15 minutes) every piece is replayed that way and the union of
 their bands set against sampled constant-parameter runs (``union_row``):
 
@@ -1038,6 +1045,55 @@ def arm_remainder_row(case, duration=0.1, draws=400, corners=400, seed=0):
     )
 
 
+BOX_PARTS = {
+    "whole": ("mass", "payload", "viscous", "coulomb"),
+    "no_coulomb": ("mass", "payload", "viscous"),
+    "masses_payload": ("mass", "payload"),
+    "masses_payload_coulomb": ("mass", "payload", "coulomb"),
+}
+"""``--parts``: which ranges of the default box are uncertain (the others at nominal)."""
+
+
+def box_part_row(name, part, duration=1.0):
+    """``certified_bounds`` (one piece, its defaults) on arm ``name``'s move under part
+    ``part`` of :func:`rmijax.robots.loaders.default_box` (:data:`BOX_PARTS`): the first
+    step whose band is not finite (None: finite over ``duration`` s), the largest
+    remainder radius over the finite steps against the band's half-width there
+    (tachometers), and the seconds it took (compile included)."""
+    from certified import CASES
+
+    from rmijax.robots.loaders import default_box
+
+    box, kinds = default_box(name), BOX_PARTS[part]
+    options = {key: box[key] for key in ("mass", "payload") if key in kinds}
+    friction = {kind: box["friction"][kind] for kind in ("viscous", "coulomb") if kind in kinds}
+    if friction:
+        options["friction"] = friction
+    params = rmijax.load_robot(name, **options)
+    traj = CASES[f"{name}_box"][1](duration)
+    n = traj.n_joints
+    zeros = jnp.zeros((n, 2))
+    started = time.perf_counter()
+    out = _certify_box(traj, params, zeros, zeros, 1, solve="preconditioned",
+                       enclosure="affine", propagate="carried")  # fmt: skip
+    seconds = time.perf_counter() - started
+    piece = {key: np.asarray(value)[0] for key, value in out[3].items()}
+    finite = np.all(np.isfinite(piece["upper"] - piece["lower"]), axis=(1, 2))
+    first = None if finite.all() else int(np.argmin(finite))
+    upto = piece["remainder"][: first if first is not None else None][..., 1]
+    half = 0.5 * (piece["upper"] - piece["lower"])[: upto.shape[0]][..., 1]
+    return dict(
+        arm=name,
+        part=part,
+        uncertain=list(kinds),
+        duration=duration,
+        steps=traj.n_steps,
+        first_non_finite_step=first,
+        remainder_over_half_width_max=float(np.max(upto / np.maximum(half, 1e-300))),
+        seconds=round(seconds, 1),
+    )
+
+
 def _certificate_remainder(row, steps):
     """The largest relative difference between an interval replay's remainder and the
     certificate's own, for the same piece over the same steps (1 s sine)."""
@@ -1121,7 +1177,7 @@ def main(argv=None):
         default=["1:1", "1:0.1", "1:0.01", "1:0.001", "2:1", "2:0.1", "2:0.01"],
         help="splits:remainder_scale runs of preset_arm(4)",
     )
-    parser.add_argument("--duration", type=float, default=1.0, help="s, the scale runs")
+    parser.add_argument("--duration", type=float, default=1.0, help="s, the scale runs and --parts")
     parser.add_argument(
         "--neumann",
         action="store_true",
@@ -1165,6 +1221,12 @@ def main(argv=None):
         help="only the remainder radius against the true remainder on the shipped arms' "
         "default box (arm_remainder_row), minutes",
     )
+    parser.add_argument(
+        "--parts",
+        action="store_true",
+        help="only which part of the shipped arms' default box makes certified diverge "
+        "(box_part_row), about 15 minutes",
+    )
     parser.add_argument("--json", default=None, help="write results here")
     args = parser.parse_args(argv)
     meta = run_meta("benchmarks/certified_enclosure.py", argv, dtype="float64")
@@ -1178,6 +1240,21 @@ def main(argv=None):
                 print(f"{r['step']:>4}  {r['w']:>10.3g}  {shares}")
         if args.json:
             write_json(args.json, dict(blocks=rows), meta)
+        return
+    if args.parts:
+        rows = []
+        for name in args.robots:
+            for part in BOX_PARTS:
+                rows.append(box_part_row(name, part, args.duration))
+                r = rows[-1]
+                print(
+                    f"{name:7} {part:24} first non-finite step {r['first_non_finite_step']} "
+                    f"of {r['steps']}, remainder / half-width (tachometers) up to "
+                    f"{r['remainder_over_half_width_max']:.3g}, {r['seconds']} s",
+                    flush=True,
+                )
+        if args.json:
+            write_json(args.json, dict(parts=rows), meta)
         return
     if args.arms:
         rows = [arm_remainder_row(case) for case in ARM_CASES]
