@@ -999,7 +999,9 @@ def arm_remainder_row(case, duration=0.1, draws=400, corners=400, seed=0):
     zeros = jnp.zeros((n, 2))
     started = time.perf_counter()
     options = dict(enclosure="affine", propagate="carried", solve="preconditioned")
-    out = _certify_box(traj, params, zeros, zeros, 1, diagnostics=True, **options)
+    out = jax.block_until_ready(
+        _certify_box(traj, params, zeros, zeros, 1, diagnostics=True, **options)
+    )
     seconds = time.perf_counter() - started
     piece = {key: np.asarray(value)[0] for key, value in out[3].items()}
     lo, hi = np.asarray(params.lo), np.asarray(params.hi)
@@ -1059,7 +1061,8 @@ def box_part_row(name, part, duration=1.0):
     ``part`` of :func:`rmijax.robots.loaders.default_box` (:data:`BOX_PARTS`): the first
     step whose band is not finite (None: finite over ``duration`` s), the largest
     remainder radius over the finite steps against the band's half-width there
-    (tachometers), and the seconds it took (compile included)."""
+    (tachometers; near 1 when it diverges), and the seconds it took (compile
+    included)."""
     from certified import CASES
 
     from rmijax.robots.loaders import default_box
@@ -1076,6 +1079,7 @@ def box_part_row(name, part, duration=1.0):
     started = time.perf_counter()
     out = _certify_box(traj, params, zeros, zeros, 1, solve="preconditioned",
                        enclosure="affine", propagate="carried")  # fmt: skip
+    out = jax.block_until_ready(out)
     seconds = time.perf_counter() - started
     piece = {key: np.asarray(value)[0] for key, value in out[3].items()}
     finite = np.all(np.isfinite(piece["upper"] - piece["lower"]), axis=(1, 2))
