@@ -375,6 +375,7 @@ CERTIFIED_FILES = (
     "certified_preset6_cpu.json",
     "certified_preset4_affine_cpu.json",
     "certified_preset4_affine_seg1_cpu.json",
+    "certified_preset6_affine_cpu.json",
     "certified_arms_cpu.json",
     "certified_arms_iiwa14_cpu.json",
     "certified_arms_box_cpu.json",
