@@ -285,3 +285,18 @@ def test_affine_hessian_over_the_panda_mass_and_payload_box():
     # not vacuous: the enclosure is within 20x of the sampled spread on the mass block
     spread = hessians.max(axis=0) - hessians.min(axis=0)
     assert np.max((hi - lo)[:, :p, :p]) < 20 * np.max(spread[:, :p, :p]) + 1e-9
+
+
+def test_default_box_divergence_names_the_coulomb_ranges():
+    """The UR5e's whole default box diverges within its first 0.1 s (step 8; the Coulomb
+    ranges set it off, ``docs/methods.md``): the error says so and names the fix, and
+    without the Coulomb ranges the same run is finite."""
+    box = default_box("ur5e")
+    params = rmijax.load_robot("ur5e", **box)
+    traj = _short(real_arm_case("ur5e").traj, 10)
+    message = r"(?s)step 8.*gains\. With Coulomb.*narrow the Coulomb"
+    with pytest.raises(rmijax.DivergedError, match=message):
+        certified.certified_bounds(traj, params)
+    no_coulomb = dict(box, friction=dict(viscous=box["friction"]["viscous"]))
+    bounds, _ = certified.certified_bounds(traj, rmijax.load_robot("ur5e", **no_coulomb))
+    assert np.all(np.isfinite(np.asarray(bounds.upper - bounds.lower)))

@@ -85,7 +85,7 @@ from rmijax.methods.chain_jets import chain_perturbation_jets, solve_preconditio
 from rmijax.robots.box import UncertainRobot
 from rmijax.robots.model import GRAVITY
 from rmijax.robots.planar import tail_sums
-from rmijax.robots.spatial import ChainLayout
+from rmijax.robots.spatial import COULOMB_VELOCITY, ChainLayout
 from rmijax.robots.structure import PlanarPointMass
 from rmijax.trajectory import Trajectory
 
@@ -1531,11 +1531,22 @@ def certified_bounds(
                 f"e.g. {name!r} in {parts} parts: the range that moves the nominal loop "
                 "most per piece, see split_ranking"
             )
+        uncertain = np.asarray(params.hi) > np.asarray(params.lo)
+        names = params.model.param_names
+        note = ""
+        if any(name.startswith("coulomb[") for name in np.asarray(names)[uncertain]):
+            note = (
+                " With Coulomb friction uncertain: its smooth sign is steep within "
+                f"{COULOMB_VELOCITY} rad/s of rest, and where the other ranges spread the "
+                "joint velocities wider than that its curvature makes the remainder diverge "
+                "(the shipped arms' default box within 0.1 s; docs/methods.md, 'Why the "
+                "default box diverges'): narrow the Coulomb or the mass and payload ranges."
+            )
         raise DivergedError.at(
             where,
             f"certified bounds are not finite (step {step}, joint {joint} "
             f"{DivergedError.SENSORS[sensor]}): the remainder bound diverged. Narrow the "
-            f"parameter box, split it ({hint}) or use stiffer gains.",
+            f"parameter box, split it ({hint}) or use stiffer gains.{note}",
         )
     bounds = Bounds(lower=lower, upper=upper, nominal=traj.x_n, crossed=upper < lower, dt=traj.dt)
     certificate = Certificate(
