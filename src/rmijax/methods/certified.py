@@ -749,11 +749,11 @@ def _certify_piece(
     def dead_step(carry, u):
         """After the remainder stopped being finite (every band from here on is not finite,
         as it would be with ``live_step``): skip the work."""
-        shapes = jax.eval_shape(live_step, carry, u)
-        rhat = jnp.full_like(carry[5], jnp.inf)
-        carry = (*carry[:5], rhat, *carry[6:8], carry[8] + 1)
-        outputs = jax.tree_util.tree_map(lambda s: jnp.full(s.shape, jnp.inf, s.dtype), shapes[1])
-        return carry, outputs
+        xc, sens, sens2, buf, tail_max, rhat, gens, gens_d, k = carry
+        rhat = jnp.full_like(rhat, jnp.inf)
+        blocks = jnp.full((n, 10), jnp.inf, dtype) if diagnostics else None
+        ys = tuple(jnp.full_like(a, jnp.inf) for a in (xc, sens, sens2, rhat, rhat))
+        return (xc, sens, sens2, buf, tail_max, rhat, gens, gens_d, k + 1), (*ys, blocks)
 
     def live_step(carry, u):
         xc, sens, sens2, buf, tail_max, rhat, gens, gens_d, k = carry
