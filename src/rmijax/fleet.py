@@ -503,7 +503,6 @@ def certified_batch(
     robots = _as_list(params, UncertainRobot, "params")
     size, (trajs, robots) = _broadcast([trajs, robots], ["trajs", "params"])
     layout = certified._layout(robots[0])  # refuses a model it cannot evaluate
-    free = tuple(int(b) for b in np.flatnonzero(np.asarray(robots[0].hi > robots[0].lo)))
     for r, (traj, robot) in enumerate(zip(trajs, robots, strict=True)):
         check_types(traj, robot)
         certified._layout(robot)
@@ -514,8 +513,6 @@ def certified_batch(
                 "every run; load the arm once and make each run's box with "
                 "params.with_box(lo=..., hi=...) (call it once per arm)"
             )
-        if tuple(int(b) for b in np.flatnonzero(np.asarray(robot.hi > robot.lo))) != free:
-            free = ()  # boxes differ in what is certain: every parameter a variable
         if jnp.result_type(traj.dtype, robot.dtype) != jnp.float64:
             raise ValueError("certified bounds work in float64: enable jax_enable_x64")
         if robot.n_joints != traj.n_joints:
@@ -534,8 +531,10 @@ def certified_batch(
             "counts, or call rmijax.certified_bounds(..., splits='auto') per run"
         )
     solve = certified._solve_choice(solve, robots[0])
-    if free == () or len(free) == robots[0].n_params:
-        free = None  # every parameter uncertain, or not the same ones: nothing to fold
+    # fold the certain parameters where every box leaves the same ones certain; where
+    # the boxes differ (or none is certain) every parameter is a variable
+    frees = {certified._free_parameters(r) for r in robots}
+    free = (frees.pop() or None) if len(frees) == 1 else None
     boxes = [certified._pieces(r, certified._split_counts(r, splits)) for r in robots]
     if free is not None:  # certain parameters are constants of the jets, not variables
         boxes = [tuple(a[:, list(free)] for a in box) for box in boxes]

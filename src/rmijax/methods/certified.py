@@ -1293,6 +1293,15 @@ def _auto_boxes(traj, params, certify, max_pieces, refine, chunk=1):
     return centers, los, his, pieces
 
 
+def _free_parameters(params):
+    """The indices of ``params``' uncertain parameters (``hi > lo``), the variables of
+    the jets; None when every parameter is uncertain (nothing to fold). The certain
+    ones are constants of the jets at their value."""
+    lo, hi = np.asarray(params.lo), np.asarray(params.hi)
+    free = tuple(int(b) for b in np.flatnonzero(hi > lo))
+    return None if len(free) == lo.size else free
+
+
 def _certify_box(
     traj,
     params,
@@ -1317,12 +1326,9 @@ def _certify_box(
     """
     noisy = bool(np.any(np.asarray(noise_lo) != 0) or np.any(np.asarray(noise_hi) != 0))
     layout = _layout(params)
-    lo, hi = np.asarray(params.lo), np.asarray(params.hi)
-    free = tuple(int(b) for b in np.flatnonzero(hi > lo))
-    if len(free) == lo.size:  # every parameter uncertain: nothing to fold
-        free, fixed = None, None
-    else:  # certain parameters are constants, not variables of the jets
-        fixed = jnp.asarray(lo)
+    lo = np.asarray(params.lo)
+    free = _free_parameters(params)
+    fixed = None if free is None else jnp.asarray(lo)  # the certain ones' values
     kernels = []  # the kernel and tail, the same on every call
 
     def certify(boxes):
