@@ -975,6 +975,19 @@ def union_row(n, splits, steps, draws=1000, seed=0):
     )
 
 
+def _one_chain_piece(traj, params, diagnostics=False):
+    """``certified``'s run of the whole box as one piece with its chain defaults
+    (affine/carried, preconditioned solve): the piece's arrays (numpy, no piece axis)
+    and the seconds to its end, compile included."""
+    zeros = jnp.zeros((traj.n_joints, 2))
+    options = dict(enclosure="affine", propagate="carried", solve="preconditioned")
+    started = time.perf_counter()
+    out = _certify_box(traj, params, zeros, zeros, 1, diagnostics=diagnostics, **options)
+    out = jax.block_until_ready(out)
+    seconds = time.perf_counter() - started
+    return {key: np.asarray(value)[0] for key, value in out[3].items()}, seconds
+
+
 ARM_CASES = ("ur5e_box", "panda_box", "iiwa14_box")
 """``--arms``: the shipped arms under their whole default box (``benchmarks/certified.py``'s
 cases of those names: the first steps of ``rmijax --robot``'s move)."""
@@ -995,15 +1008,7 @@ def arm_remainder_row(case, duration=0.1, draws=400, corners=400, seed=0):
 
     build, motion = CASES[case]
     params, traj = build(), motion(duration)
-    n = traj.n_joints
-    zeros = jnp.zeros((n, 2))
-    started = time.perf_counter()
-    options = dict(enclosure="affine", propagate="carried", solve="preconditioned")
-    out = jax.block_until_ready(
-        _certify_box(traj, params, zeros, zeros, 1, diagnostics=True, **options)
-    )
-    seconds = time.perf_counter() - started
-    piece = {key: np.asarray(value)[0] for key, value in out[3].items()}
+    piece, seconds = _one_chain_piece(traj, params, diagnostics=True)
     lo, hi = np.asarray(params.lo), np.asarray(params.hi)
     rng = np.random.default_rng(seed)
     bits = rng.integers(0, 2, size=(corners, lo.size)).astype(bool)
@@ -1074,14 +1079,7 @@ def box_part_row(name, part, duration=1.0):
         options["friction"] = friction
     params = rmijax.load_robot(name, **options)
     traj = CASES[f"{name}_box"][1](duration)
-    n = traj.n_joints
-    zeros = jnp.zeros((n, 2))
-    started = time.perf_counter()
-    out = _certify_box(traj, params, zeros, zeros, 1, solve="preconditioned",
-                       enclosure="affine", propagate="carried")  # fmt: skip
-    out = jax.block_until_ready(out)
-    seconds = time.perf_counter() - started
-    piece = {key: np.asarray(value)[0] for key, value in out[3].items()}
+    piece, seconds = _one_chain_piece(traj, params)
     finite = np.all(np.isfinite(piece["upper"] - piece["lower"]), axis=(1, 2))
     first = None if finite.all() else int(np.argmin(finite))
     upto = piece["remainder"][: first if first is not None else None][..., 1]
