@@ -508,10 +508,12 @@ def certified_batch(
         certified._layout(robot)
         if layout is not None and robot.model != robots[0].model:
             raise ValueError(
-                f"params[{r}] (model {robot.model.name!r}) is not the model of params[0] "
-                f"({robots[0].model.name!r}): certified_batch needs one loaded chain for "
-                "every run; load the arm once and make each run's box with "
-                "params.with_box(lo=..., hi=...) (call it once per arm)"
+                f"params[{r}] (model {robot.model.name!r}, parameters "
+                f"{robot.model.param_names}) is not the model of params[0] "
+                f"({robots[0].model.name!r}, {robots[0].model.param_names}): certified_batch "
+                "needs one chain and parameter layout (payload link, friction kinds) for "
+                "every run; load the arm with the same layout for each, or make each run's "
+                "box with params.with_box(lo=..., hi=...)"
             )
         if jnp.result_type(traj.dtype, robot.dtype) != jnp.float64:
             raise ValueError("certified bounds work in float64: enable jax_enable_x64")

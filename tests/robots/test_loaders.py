@@ -1,5 +1,6 @@
 """load_robot: readers (URDF, MJCF subset, MJCF through MuJoCo), the box, and every refusal."""
 
+import dataclasses
 import sys
 
 import jax
@@ -15,7 +16,7 @@ from rmijax.robots.loaders import (
     load_chain,
     load_robot,
 )
-from rmijax.robots.spatial import COULOMB_VELOCITY
+from rmijax.robots.spatial import COULOMB_VELOCITY, spatial_dynamics
 from rmijax.robots.structure import LinearDynamics
 
 mujoco = pytest.importorskip("mujoco")
@@ -203,6 +204,34 @@ def test_box_layout_and_model(tmp_path):
         f"viscous[{j}]" for j in load_chain("ur5e").joint_names
     )
     assert load_robot("iiwa14", dtype=np.float32).nominal.dtype == np.float32
+
+
+def test_two_loads_of_one_arm_share_the_model_and_its_compilation():
+    first = load_robot("ur5e", mass=0.1, payload=(0.0, 1.0))
+    second = load_robot("ur5e", mass=0.2, payload=(0.0, 2.0))  # another box, same layout
+    assert second.model == first.model and hash(second.model) == hash(first.model)
+    assert second.model.structure.layout is first.model.structure.layout
+    traces = []
+
+    @jax.jit
+    def mass_matrix(robot, q):
+        traces.append(robot.model.name)  # runs once per compilation
+        return robot.model.mass_matrix(q, robot.nominal)
+
+    q = np.linspace(-1.0, 1.0, 6)
+    for robot in (first, second):
+        want = robot.model.mass_matrix(q, robot.nominal)
+        np.testing.assert_allclose(mass_matrix(robot, q), want, rtol=1e-13, atol=1e-14)
+    assert traces == ["ur5e"]
+    # another payload point, friction layout or chain is another model
+    offset = load_robot("ur5e", payload=(0.0, 1.0), payload_offset=(0, 0, 0.1))
+    viscous = load_robot("ur5e", payload=(0.0, 1.0), friction=dict(viscous=(0, 1)))
+    assert offset.model != first.model and viscous.model != first.model
+    assert load_robot("ur5e", payload=(0.0, 1.0)).model == first.model
+    chain = load_chain("ur5e")
+    heavier = dataclasses.replace(chain, masses=chain.masses * (1 + 2**-52 * np.arange(6)))
+    assert spatial_dynamics(heavier) is not spatial_dynamics(chain)
+    assert spatial_dynamics(dataclasses.replace(chain)) is spatial_dynamics(chain)
 
 
 def test_payload_on_a_fixed_link_is_carried_by_its_body(tmp_path, rng):

@@ -150,7 +150,8 @@ class ChainLayout:
 
     For code that evaluates the same dynamics on its own number types (the certified
     method's interval and affine jets, :mod:`rmijax.methods.chain_jets`). Compared and
-    hashed by identity.
+    hashed by identity; :func:`spatial_dynamics` builds one per content, so two loads of
+    one robot with the same payload link and friction kinds share it.
 
     Attributes:
         chain: the static chain.
@@ -328,10 +329,32 @@ def _unrolled_state(frames, revolute, attach, unit_masses, payload_point, q, qd)
     return _materialise_tree((motion, velocity, acceleration, inertia, moment), q.shape[-1])
 
 
+_BUILT: dict = {}
+_BUILT_SIZE = 32
+
+
+def _content_key(chain: Chain, payload: Payload | None, friction: tuple[str, ...]):
+    """What a chain, payload and friction layout hold, as a hashable value (arrays by bytes)."""
+    arrays = tuple(
+        getattr(chain, f).tobytes()
+        for f in ("rotations", "translations", "axes", "armature", "masses", "coms", "inertias")
+    )
+    names = (chain.name, chain.joint_names, chain.body_names, chain.joint_types)
+    where = None
+    if payload is not None:
+        where = (int(payload.body), np.asarray(payload.point, np.float64).tobytes())
+    return names, arrays, where, friction
+
+
 def spatial_dynamics(
     chain: Chain, *, payload: Payload | None = None, friction: tuple[str, ...] = ()
 ) -> SpatialDynamics:
     """Build the dynamics functions of ``chain`` for one parameter layout.
+
+    Built once per content: a chain, payload and friction layout equal in every name and
+    number to one built before (among the last 32) returns that same object, so two loads
+    of one robot give equal models and jitted code that takes the model as a static
+    argument does not compile again.
 
     Args:
         chain: the static chain.
@@ -342,8 +365,20 @@ def spatial_dynamics(
     Returns:
         A :class:`SpatialDynamics`; its functions close over NumPy constants only.
     """
-    n = chain.n_joints
     friction = tuple(k for k in ("viscous", "coulomb") if k in friction)
+    key = _content_key(chain, payload, friction)
+    built = _BUILT.get(key)
+    if built is None:
+        built = _build(chain, payload, friction)
+        if len(_BUILT) >= _BUILT_SIZE:
+            _BUILT.pop(next(iter(_BUILT)))  # the oldest
+        _BUILT[key] = built
+    return built
+
+
+def _build(chain: Chain, payload: Payload | None, friction: tuple[str, ...]) -> SpatialDynamics:
+    """:func:`spatial_dynamics` without the memo."""
+    n = chain.n_joints
     revolute = [t == "revolute" for t in chain.joint_types]
     # Rodrigues' formula per revolute joint: Rot(q) = 1 + sin q K + (1 - cos q) K^2.
     skews = [_skew(a) for a in chain.axes]
