@@ -204,6 +204,7 @@ def run_case(name, duration, draws, every, splits, options=None, warm=True):
         enclosure=cert.enclosure,
         propagate=cert.propagate,
         solve=cert.solve,
+        **(dict(coulomb=cert.coulomb) if cert.coulomb != "taylor" else {}),
         segments=int(cert.segments),
         steps=traj.n_steps,
         seconds=round(seconds, 2),
@@ -526,6 +527,12 @@ def main(argv=None):
         "preconditioned on a chain)",
     )
     parser.add_argument(
+        "--coulomb",
+        choices=("taylor", "range"),
+        default="taylor",
+        help="how a chain's Coulomb ranges enter the jets (certified_bounds' coulomb)",
+    )
+    parser.add_argument(
         "--cold-only", action="store_true", help="time one call only (no warm second call)"
     )
     parser.add_argument("--json", help="write the results to this JSON file")
@@ -587,6 +594,8 @@ def main(argv=None):
                 segments=args.segments,
                 solve=args.solve,
             )
+            if args.coulomb != "taylor":
+                options["coulomb"] = args.coulomb
             if args.max_pieces is not None:
                 options["max_pieces"] = args.max_pieces
             if args.refine is not None:
@@ -614,6 +623,7 @@ def main(argv=None):
                 segments=args.segments,
                 solve=_solve_choice(args.solve, params),
             )
+            row |= dict(coulomb=args.coulomb) if args.coulomb != "taylor" else {}
             rows.append(row)
             print(f"{name:26} diverged after {row['seconds']} s: {err}", flush=True)
             if args.json:

@@ -409,6 +409,8 @@ def certified_table():
             pair += f", {r['segments']} segment" if r.get("segments", 3) != 3 else ""
             # rows before the solve option (stop 32) solved by articulated pivots
             pair += ", preconditioned" if r.get("solve") == "preconditioned" else ""
+            # Coulomb ranges bounded by the sign's range (stop 35 on): coulomb="range"
+            pair += ", Coulomb by range" if r.get("coulomb") == "range" else ""
             if "diverged" in r:
                 step = r["diverged"].split("(step ")[1].split(",")[0]
                 rows.append(

@@ -294,9 +294,126 @@ def test_default_box_divergence_names_the_coulomb_ranges():
     box = default_box("ur5e")
     params = rmijax.load_robot("ur5e", **box)
     traj = _short(real_arm_case("ur5e").traj, 10)
-    message = r"(?s)step 8.*gains\. With Coulomb.*narrow the Coulomb"
+    message = r"(?s)step 8.*gains\. With Coulomb.*coulomb=.range.*narrow the Coulomb"
     with pytest.raises(rmijax.DivergedError, match=message):
         certified.certified_bounds(traj, params)
     no_coulomb = dict(box, friction=dict(viscous=box["friction"]["viscous"]))
     bounds, _ = certified.certified_bounds(traj, rmijax.load_robot("ur5e", **no_coulomb))
     assert np.all(np.isfinite(np.asarray(bounds.upper - bounds.lower)))
+
+
+# --------------------------------------------------------------------------
+# coulomb="range": the Coulomb errors move an enclosure of their sign over the tube
+# --------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def arm2_coulomb(tmp_path_factory):
+    """The paper's two-joint arm as a URDF, masses +-5 % and Coulomb ranges 0-10 N m,
+    0.5 s of ``hold``/``sine`` (joint 1 held at rest, where the smooth sign is steep),
+    certified with ``coulomb="range"``."""
+    from arm2_urdf import arm2_urdf
+
+    path = tmp_path_factory.mktemp("arm2") / "arm2.urdf"
+    path.write_text(arm2_urdf())
+    params = rmijax.load_robot(path, mass=0.05, friction=dict(coulomb=(0.0, 10.0)))
+    traj = rmijax.trajectory(["hold", "sine"], duration=0.5)
+    bounds, cert = certified.certified_bounds(traj, params, coulomb="range")
+    return traj, params, bounds, cert
+
+
+def test_coulomb_range_band_contains_samples(arm2_coulomb):
+    """None of 216 constant-parameter runs (all 16 corners, 200 uniform draws) leaves the
+    band; without the remainder they do (teeth)."""
+    traj, params, bounds, cert = arm2_coulomb
+    assert cert.coulomb == "range"
+    assert np.all(np.isfinite(np.asarray(bounds.upper - bounds.lower)))
+    states, _ = rmijax.simulate(traj, params, _samples(params, corners=0, draws=200))
+    lo, hi = np.asarray(params.lo), np.asarray(params.hi)
+    bits = np.array(np.meshgrid(*[[0, 1]] * lo.size, indexing="ij")).reshape(lo.size, -1).T
+    corners, _ = rmijax.simulate(traj, params, np.where(bits == 1, hi, lo))
+    states = np.concatenate([np.asarray(states), np.asarray(corners)])
+    assert _escape(bounds, states) <= TOL
+    bare, _ = certified.certified_bounds(traj, params, coulomb="range", remainder_scale=0.0)
+    assert _escape(bare, states) > 1e-9
+
+
+def test_coulomb_range_sign_encloses_tanh_over_the_tube():
+    """``_sign_range`` holds ``tanh(qd / v_s)`` of every state of the tube it is given
+    (the centre plus the polynomial's range plus the remainder), sampled at 2000 points."""
+    rng = np.random.default_rng(7)
+    n, p = 3, 4
+    xc = jnp.asarray(rng.normal(size=(n, 2)) * 0.05)
+    sens = jnp.asarray(rng.normal(size=(n, 2, p)) * 0.005)
+    sens2 = rng.normal(size=(n, 2, p, p)) * 0.002
+    sens2 = jnp.asarray(sens2 + np.swapaxes(sens2, -1, -2))
+    d_hi = jnp.asarray(rng.uniform(0.5, 1.0, size=p))
+    d_lo = -d_hi
+    rhat = jnp.asarray(rng.uniform(0, 0.01, size=(n, 2)))
+    lo, hi = (np.asarray(v) for v in certified._sign_range(xc, sens, sens2, d_lo, d_hi, rhat))
+    d = rng.uniform(-1, 1, size=(2000, p))
+    r = rng.uniform(-1, 1, size=(2000, n))
+    d[::2], r[::2] = np.sign(d[::2]), np.sign(r[::2])  # half of them vertices
+    d, r = d * np.asarray(d_hi), r * np.asarray(rhat)[:, 1]
+    qd = (
+        np.asarray(xc)[:, 1]
+        + d @ np.asarray(sens)[:, 1].T
+        + 0.5 * np.einsum("kb,ibc,kc->ki", d, np.asarray(sens2)[:, 1], d)
+        + r
+    )
+    sign = np.tanh(qd / rmijax.robots.spatial.COULOMB_VELOCITY)
+    assert np.all(sign >= lo) and np.all(sign <= hi)
+    # not vacuous: within 1.5x of the sampled spread (measured 1.05-1.31x)
+    spread = sign.max(axis=0) - sign.min(axis=0)
+    assert np.all(hi - lo <= 1.5 * spread), (hi - lo) / spread
+
+
+PAIRS = [("interval", "kernel"), ("affine", "carried")]
+
+
+@pytest.mark.parametrize(("enclosure", "propagate"), PAIRS)
+def test_checker_verifies_a_coulomb_range_certificate(
+    arm2_coulomb, enclosure, propagate, monkeypatch
+):
+    """The checker recomputes the sign's enclosure from its own tube and accepts the first
+    steps of a ``coulomb="range"`` certificate; it rejects the certificate of a mutant
+    certifier whose enclosure is the centre's sign alone (a point: the Coulomb errors'
+    effect then ignores how far the tube's velocities spread), and the halved remainder."""
+    traj, params, _, _ = arm2_coulomb
+    short = _short(traj, 6)
+    options = dict(enclosure=enclosure, propagate=propagate, coulomb="range")
+    _, cert = certified.certified_bounds(short, params, **options)
+    result = check_certificate(cert, short, params, steps=5)
+    assert result.ok, result.reason
+    _, halved = certified.certified_bounds(short, params, remainder_scale=0.5, **options)
+    rejected = check_certificate(halved, short, params, steps=5)
+    assert not rejected.ok and "below the recomputed bound" in rejected.reason
+
+    def centre_only(xc, sens, sens2, d_lo, d_hi, rhat):
+        sign = jnp.tanh(xc[:, 1] * (1.0 / rmijax.robots.spatial.COULOMB_VELOCITY))
+        return sign, sign
+
+    monkeypatch.setattr(certified, "_sign_range", centre_only)
+    certified._certify.clear_cache()  # compiled with the honest enclosure
+    try:
+        _, mutant = certified.certified_bounds(short, params, **options)
+    finally:
+        certified._certify.clear_cache()
+    rejected = check_certificate(mutant, short, params, steps=5)
+    assert not rejected.ok and "below the recomputed bound" in rejected.reason
+
+
+def test_coulomb_range_certifies_the_ur5e_default_box_start():
+    """The UR5e's whole default box over its first 0.1 s: with the Taylor-expanded sign the
+    remainder diverges at step 8 (the test above); with ``coulomb="range"`` the band is
+    finite, none of 458 sampled runs leaves it, and without the remainder they do."""
+    params = rmijax.load_robot("ur5e", **default_box("ur5e"))
+    traj = _short(real_arm_case("ur5e").traj, 10)
+    bounds, cert = certified.certified_bounds(traj, params, coulomb="range")
+    assert cert.coulomb == "range"
+    assert np.all(np.isfinite(np.asarray(bounds.upper - bounds.lower)))
+    states, _ = rmijax.simulate(traj, params, _samples(params))
+    states = np.asarray(states)
+    assert _escape(bounds, states) <= TOL
+    bare, _ = certified.certified_bounds(traj, params, coulomb="range", remainder_scale=0.0)
+    assert _escape(bare, states) > 1e-9

@@ -55,6 +55,7 @@ import numpy as np
 
 from rmijax._intervals import Jet
 from rmijax.methods.certified import _layout, perturbation_jets, solve_matrix
+from rmijax.robots.spatial import COULOMB_VELOCITY
 
 __all__ = ["CheckResult", "check_certificate"]
 
@@ -359,12 +360,14 @@ def _evaluate(backend, state, grad_d, sens2, th, noise, consts, p, n, noisy):
                 target.append(Jet(noise[i, s], unit(col), backend.zeros((m, m)), backend))
         noise_jets = (eq, eqd)
     extra = {}
+    zero_g, zero_h = backend.zeros((m,)), backend.zeros((m, m))
     if consts.get("precond") is not None:  # constant jets of the backend
-        zero_g, zero_h = backend.zeros((m,)), backend.zeros((m, m))
         extra["precond"] = [
             [Jet(backend.point(v), zero_g, zero_h, backend) for v in row]
             for row in consts["precond"]
         ]
+    if consts.get("sign") is not None:  # intervals: constant jets that hold each sign
+        extra["sign"] = [Jet(backend.point(v), zero_g, zero_h, backend) for v in consts["sign"]]
     return consts["jets"](
         q,
         qd,
@@ -494,6 +497,16 @@ def check_certificate(cert, traj, params, *, steps: int | None = None, pieces=No
             "check_certificate: cert.solve must be 'articulated' or 'preconditioned', got "
             f"{cert.solve!r}: pass the Certificate that certified_bounds returned"
         )
+    layout = _layout(params)
+    ranged = cert.coulomb == "range"
+    if cert.coulomb not in ("taylor", "range") or (
+        ranged and (layout is None or "coulomb" not in layout.friction)
+    ):
+        raise ValueError(
+            "check_certificate: cert.coulomb must be 'taylor', or 'range' for a chain with "
+            f"Coulomb parameters, got {cert.coulomb!r}: pass the Certificate that "
+            "certified_bounds returned for these params"
+        )
     iv = _iv()
     backend = _MpBackend(iv)
     n = traj.n_joints
@@ -528,7 +541,8 @@ def check_certificate(cert, traj, params, *, steps: int | None = None, pieces=No
         carried=cert.propagate == "carried",
         n=n,
         p=p,
-        jets=perturbation_jets(_layout(params)),
+        jets=perturbation_jets(layout),
+        ranged=ranged,
         matrix_fn=solve_matrix(params) if cert.solve == "preconditioned" else None,
         free=free,
         fixed=[float(v) for v in box_lo],
@@ -609,6 +623,21 @@ def check_certificate(cert, traj, params, *, steps: int | None = None, pieces=No
                             f"{bound[i][s]}",
                         )
     return CheckResult(True, steps, "")
+
+
+def _sign_range(iv, state, sens, sens2, d_box, remainder):
+    """Per joint an ``mpmath`` interval holding ``tanh(qd_j / v_s)`` over the tube of one
+    step (``x_c + range(S d + 1/2 Q[d, d]) + [-r, r]``), as the jets write it
+    (``qd * (1 / v_s)``, the float ``1 / v_s``)."""
+    out = []
+    for i in range(state.shape[0]):
+        qd = (
+            iv.mpf(float(state[i, 1]))
+            + _poly_range(iv, _arr(iv, sens[i, 1]), _arr(iv, sens2[i, 1]), d_box)
+            + iv.mpf([-float(remainder[i, 1]), float(remainder[i, 1])])
+        )
+        out.append(_tanh(iv, qd * iv.mpf(1.0 / COULOMB_VELOCITY)))
+    return out
 
 
 def _powers(iv, kp, kd, dt, n, steps):
@@ -811,6 +840,8 @@ def _check_step(iv, backend, k, data, u, gens_d, setup):
         kd=[iv.mpf(v) for v in kd],
         precond=_preconditioner(setup, state[k], center),
     )
+    if setup["ranged"]:  # the Coulomb signs' enclosures over the tube of step k
+        consts["sign"] = _sign_range(iv, state[k], sens[k], sens2[k], d_box, remainder[k])
     zero = iv.mpf(0)
     xc, s1, s2 = _arr(iv, state[k]), _arr(iv, sens[k]), _arr(iv, sens2[k])
     noise0 = np.full((n, 2), zero, dtype=object) if noisy else None

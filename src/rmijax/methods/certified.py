@@ -78,7 +78,7 @@ import numpy as np
 
 from rmijax import _checks
 from rmijax._affine import AffineForm, run_affine_tape
-from rmijax._intervals import Interval, Tape, run_tape, up
+from rmijax._intervals import Interval, Tape, run_tape, tanh, up
 from rmijax.control import coupled_perturbation
 from rmijax.methods.base import Bounds, DivergedError, check_types
 from rmijax.methods.chain_jets import chain_perturbation_jets, solve_preconditioned
@@ -335,6 +335,9 @@ class Certificate:
             generators are not stored: :func:`check_certificate` carries its own) (static).
         solve: ``"articulated"`` or ``"preconditioned"``: how the jets solve ``M gv =
             f`` (the preconditioner is recomputed, not stored: any is sound) (static).
+        coulomb: ``"taylor"`` or ``"range"``: how a chain's Coulomb errors entered the
+            jets (the sign's enclosures are recomputed from each step's tube, not
+            stored) (static).
     """
 
     center: jax.Array
@@ -355,6 +358,7 @@ class Certificate:
     enclosure: str = dataclasses.field(default="interval", metadata=dict(static=True))
     propagate: str = dataclasses.field(default="kernel", metadata=dict(static=True))
     solve: str = dataclasses.field(default="articulated", metadata=dict(static=True))
+    coulomb: str = dataclasses.field(default="taylor", metadata=dict(static=True))
 
     @property
     def n_pieces(self) -> int:
@@ -478,16 +482,17 @@ def _layout(params):
 
 
 @functools.cache
-def _perturbation_tape(layout, n, p, noisy, precond=False):
+def _perturbation_tape(layout, n, p, noisy, precond=False, ranged=False):
     """The tape of :func:`perturbation_jets` for ``n`` joints and ``p`` parameters, and its
     output rows.
 
     Leaves, in order: ``q (n), qd (n), th (p)``, with noise ``eq (n), eqd (n)``,
-    then the constants ``nominal (p), u (n), kp (n), kd (n)``, and with ``precond`` the
+    then the constants ``nominal (p), u (n), kp (n), kd (n)``, with ``precond`` the
     preconditioner ``P (n * n)`` of the solve, row by row
-    (:func:`rmijax.methods.chain_jets.solve_preconditioned`).
+    (:func:`rmijax.methods.chain_jets.solve_preconditioned`), and with ``ranged`` (a
+    chain only) the enclosures of the Coulomb signs ``(n)`` (``coulomb="range"``).
     """
-    tape = Tape(_tape_leaves(n, p, noisy, precond))
+    tape = Tape(_tape_leaves(n, p, noisy, precond, ranged))
     leaves = tape.leaves()
     take = iter(leaves)
     q, qd = [next(take) for _ in range(n)], [next(take) for _ in range(n)]
@@ -498,21 +503,34 @@ def _perturbation_tape(layout, n, p, noisy, precond=False):
     nominal = [next(take) for _ in range(p)]
     u, kp, kd = ([next(take) for _ in range(n)] for _ in range(3))
     matrix = [[next(take) for _ in range(n)] for _ in range(n)] if precond else None
-    gv = perturbation_jets(layout)(q, qd, th, nominal, u, kp, kd, noise, matrix)
+    extra = dict(sign=[next(take) for _ in range(n)]) if ranged else {}
+    gv = perturbation_jets(layout)(q, qd, th, nominal, u, kp, kd, noise, matrix, **extra)
     return tape.arrays(), tuple(node.index for node in gv)
 
 
-def _tape_leaves(n, p, noisy, precond=False):
+def _tape_leaves(n, p, noisy, precond=False, ranged=False):
     """How many leaves :func:`_perturbation_tape` has for ``n`` joints, ``p`` parameters."""
-    return 2 * n + p + (2 * n if noisy else 0) + p + 3 * n + (n * n if precond else 0)
+    leaves = 2 * n + p + (2 * n if noisy else 0) + p + 3 * n
+    return leaves + (n * n if precond else 0) + (n if ranged else 0)
 
 
 def _constants(consts):
-    """The tape's constant leaves: nominal, u, kp, kd, and the preconditioner if given."""
+    """The tape's constant leaves as ``(lo, hi)``: nominal, u, kp, kd, the preconditioner
+    if given (all points), and the Coulomb signs' enclosures if given (``consts["sign"]``,
+    a pair of (n,) ends)."""
     parts = [consts["nominal"], consts["u"], consts["kp"], consts["kd"]]
     if consts.get("precond") is not None:
         parts.append(jnp.asarray(consts["precond"]).reshape(-1))
-    return jnp.concatenate(parts)
+    points = jnp.concatenate(parts)
+    if consts.get("sign") is None:
+        return points, points
+    sign_lo, sign_hi = consts["sign"]
+    return jnp.concatenate([points, sign_lo]), jnp.concatenate([points, sign_hi])
+
+
+def _tape_flags(consts):
+    """``(precond, ranged)`` of the tape that ``consts`` feed."""
+    return consts.get("precond") is not None, consts.get("sign") is not None
 
 
 def solve_matrix(params):
@@ -590,12 +608,12 @@ def _evaluate(state, state_grad_d, sens2, th_value, noise_value, consts, layout=
         values.append(Interval(swap(noise_value.lo), swap(noise_value.hi)))
         grads.append(Interval(swap(eye[p + 2 * n :].reshape(n, 2, m))))
         hessians.append(Interval(jnp.zeros((2 * n, m, m), dtype)))
-    constants = _constants(consts)
-    values.append(Interval(constants))
-    grads.append(Interval(jnp.zeros((constants.shape[0], m), dtype)))
-    hessians.append(Interval(jnp.zeros((constants.shape[0], m, m), dtype)))
+    const_lo, const_hi = _constants(consts)
+    values.append(Interval(const_lo, const_hi))
+    grads.append(Interval(jnp.zeros((const_lo.shape[0], m), dtype)))
+    hessians.append(Interval(jnp.zeros((const_lo.shape[0], m, m), dtype)))
     value, grad, hessian = _cat(*values), _cat(*grads), _cat(*hessians)
-    tape, rows = _perturbation_tape(layout, n, width, noisy, consts.get("precond") is not None)
+    tape, rows = _perturbation_tape(layout, n, width, noisy, *_tape_flags(consts))
     leaves = (value.lo, value.hi, grad.lo, grad.hi, hessian.lo, hessian.hi)
     return run_tape(tape, leaves, np.asarray(rows))
 
@@ -666,17 +684,23 @@ def _evaluate_affine(
         values.append(exact(eta_c, unit_eta * rad[None], eta_c))
         grads.append(AffineForm.point(unit_eta, m))
         hess.append(jnp.zeros((2 * n, m, m), dtype))
-    constants = _constants(consts)
-    values.append(AffineForm.point(constants, m))
-    grads.append(AffineForm.point(jnp.zeros((constants.shape[0], m), dtype), m))
-    hess.append(jnp.zeros((constants.shape[0], m, m), dtype))
+    const_lo, const_hi = _constants(consts)
+    count = const_lo.shape[0]
+    points = count - (n if consts.get("sign") is not None else 0)
+    values.append(AffineForm.point(const_lo[:points], m))
+    if points < count:  # the Coulomb signs' enclosures: centre and radius (rounding in e)
+        sign_c = 0.5 * (const_lo[points:] + const_hi[points:])
+        sign_e = jnp.maximum(const_hi[points:] - sign_c, sign_c - const_lo[points:])
+        values.append(exact(sign_c, jnp.zeros((n, m), dtype), sign_e))
+    grads.append(AffineForm.point(jnp.zeros((count, m), dtype), m))
+    hess.append(jnp.zeros((count, m, m), dtype))
 
     def cat(forms):
         parts = [jnp.concatenate([getattr(f, key) for f in forms], 0) for key in "cae"]
         return AffineForm(*parts)
 
     leaves = (cat(values), cat(grads), cat([AffineForm.point(h, m) for h in hess]))
-    tape, rows = _perturbation_tape(layout, n, width, noisy, consts.get("precond") is not None)
+    tape, rows = _perturbation_tape(layout, n, width, noisy, *_tape_flags(consts))
     _, _, h = run_affine_tape(tape, leaves, np.asarray(rows))
     return h.bounds()
 
@@ -702,6 +726,7 @@ def _certify_piece(
     fixed=None,
     matrix_fn=None,
     axis_name=None,
+    coulomb="taylor",
 ):
     """The Taylor-model induction over the whole run for one piece of the box.
 
@@ -713,7 +738,9 @@ def _certify_piece(
     holds ``w_blocks`` (T, n, 10):
     ``w_k`` split by source (see :func:`_w_blocks`). Once the remainder radius is not
     finite the remaining steps are skipped (their outputs set to ``inf``); under a
-    ``vmap`` named ``axis_name`` only once every piece's is not finite.
+    ``vmap`` named ``axis_name`` only once every piece's is not finite. With
+    ``coulomb="range"`` (static) the Coulomb errors move an enclosure of their sign over
+    each step's tube (:func:`_sign_range`) instead of its Taylor expansion.
     """
     n = traj.n_joints
     p = center.shape[0]
@@ -760,6 +787,8 @@ def _certify_piece(
         consts = dict(nominal=nominal, u=u, kp=kp, kd=kd, fixed=fixed)
         if matrix_fn is not None:
             consts["precond"] = _preconditioner(matrix_fn, xc, center, fixed, free)
+        if coulomb == "range":
+            consts["sign"] = _sign_range(xc, sens, sens2, d_lo, d_hi, rhat)
         # --- the centre: coefficients of the next Taylor model ---------------
         zero_noise = Interval(jnp.zeros((n, 2), dtype)) if noisy else None
         g0, g1, g2 = _evaluate(
@@ -890,6 +919,16 @@ def _certify_piece(
     return out | (dict(w_blocks=blocks) if diagnostics else {})
 
 
+def _sign_range(xc, sens, sens2, d_lo, d_hi, rhat):
+    """``(lo, hi)`` (n,): an enclosure of the smooth Coulomb sign ``tanh(qd_j / v_s)`` over
+    the tube of one step (``x_c + range(S d + 1/2 Q[d, d]) + [-r, r]``, every ``d`` of the
+    piece), rounded outward; the same expression as the jets' (``qd * (1 / v_s)``)."""
+    low, high = _poly_range(sens, sens2, d_lo, d_hi)
+    qd = Interval(xc[:, 1]) + Interval(low[:, 1], high[:, 1]) + Interval(-rhat[:, 1], rhat[:, 1])
+    sign = tanh(qd * (1.0 / COULOMB_VELOCITY))
+    return sign.lo, sign.hi
+
+
 def _carried_terms(g1, g2, v_hat, d_rad, gens_d, n, p, kp, kd, dt):
     """What ``propagate="carried"`` needs of one step's centre jets.
 
@@ -1003,6 +1042,7 @@ def _w_blocks(linear, quadratic, n, p):
         "layout",
         "free",
         "solve",
+        "coulomb",
     ),
 )
 def _certify(
@@ -1025,6 +1065,7 @@ def _certify(
     free=None,
     fixed=None,
     solve="articulated",
+    coulomb="taylor",
 ):
     kernel, tail = _kernel(traj.kp, traj.kd, traj.dt, kernel_steps)
     run = functools.partial(
@@ -1046,10 +1087,12 @@ def _certify(
         fixed=fixed,
         matrix_fn=solve_matrix(params) if solve == "preconditioned" else None,
         axis_name=_PIECES,
+        coulomb=coulomb,
     )
     n, p = traj.n_joints, params.n_params
     if enclosure == "affine":
-        batch = _affine_batch(layout, n, p, centers.shape[1], noisy, solve == "preconditioned")
+        precond, ranged = solve == "preconditioned", coulomb == "range"
+        batch = _affine_batch(layout, n, p, centers.shape[1], noisy, precond, ranged)
     else:
         batch = centers.shape[0]
     count = centers.shape[0]
@@ -1069,7 +1112,7 @@ def _certify(
     return pieces, kernel, tail
 
 
-def _affine_batch(layout, n, p, variables, noisy, precond=False):
+def _affine_batch(layout, n, p, variables, noisy, precond=False, ranged=False):
     """How many pieces to evaluate together on affine jets: as many as keep the tape's
     buffers (rows x packed Hessian, gradient and value x (symbols + 2) floats) within
     :data:`_AFFINE_BUFFER`, at least one. Measured on this 2-core CPU (the Intel Xeon
@@ -1077,9 +1120,9 @@ def _affine_batch(layout, n, p, variables, noisy, precond=False):
     7.4 / 8.6 s once compiled in batches of 1 / 2 / 4 / 8 / 16, one 4-link evaluation
     (9 MB) 13.8 ms alone and 20.8 ms per piece in batches of 16: larger batches leave
     the cache."""
-    tape, _ = _perturbation_tape(layout, n, p, noisy, precond)
+    tape, _ = _perturbation_tape(layout, n, p, noisy, precond, ranged)
     m = variables + 2 * n + (2 * n if noisy else 0)  # (d, R[, eta]): uncertain ``d`` only
-    rows = _tape_leaves(n, p, noisy, precond) + tape[0].shape[0]
+    rows = _tape_leaves(n, p, noisy, precond, ranged) + tape[0].shape[0]
     per_piece = rows * (m * (m + 1) // 2 + m + 1) * (m + 2) * 8
     return max(1, _AFFINE_BUFFER // per_piece)
 
@@ -1317,6 +1360,7 @@ def _certify_box(
     solve="articulated",
     max_pieces=None,
     refine=None,
+    coulomb="taylor",
 ):
     """Split the box and certify every piece: ``(centers, los, his, pieces, kernel, tail)``.
 
@@ -1350,6 +1394,7 @@ def _certify_box(
             free=free,
             fixed=fixed,
             solve=solve,
+            coulomb=coulomb,
         )
         if free is not None:  # back to every parameter: the certain ones' coefficients are 0
             rows = np.asarray(free, dtype=np.int32)
@@ -1366,7 +1411,8 @@ def _certify_box(
         if enclosure == "affine":  # the batch that keeps the affine buffers in cache
             variables = lo.size if free is None else len(free)
             precond = solve == "preconditioned"
-            chunk = _affine_batch(layout, traj.n_joints, lo.size, variables, noisy, precond)
+            ranged = coulomb == "range"
+            chunk = _affine_batch(layout, traj.n_joints, lo.size, variables, noisy, precond, ranged)
         else:
             chunk = AUTO_CHUNK
         *boxes, pieces = _auto_boxes(traj, params, certify, max_pieces, refine, chunk)
@@ -1399,6 +1445,7 @@ def certified_bounds(
     solve: str | None = None,
     max_pieces: int = AUTO_MAX_PIECES,
     refine: float = AUTO_REFINE,
+    coulomb: str = "taylor",
 ) -> tuple[Bounds, Certificate]:
     """Bands proven to contain the output of every constant-parameter run, and their certificate.
 
@@ -1458,6 +1505,12 @@ def certified_bounds(
             (the Taylor polynomial's range and the noise) at the median step of some
             output is cut while ``max_pieces`` allows, largest first (a tightness
             target: the remainder is what a band holds beyond the polynomial's range).
+        coulomb: how the Coulomb ranges of a chain enter the jets: ``"taylor"`` (the
+            smooth sign ``tanh(qd / v_s)`` expanded with the rest) or ``"range"`` (each
+            step, the Coulomb error moves an enclosure of the sign over that step's
+            tube: a bounded input, no curvature; near rest, where the tube's velocities
+            spread wider than ``v_s``, the Taylor expansion's remainder diverges on the
+            shipped arms' default box). No effect without uncertain Coulomb ranges.
 
     Returns:
         ``(bounds, certificate)``: :class:`~rmijax.methods.base.Bounds` with
@@ -1502,6 +1555,11 @@ def certified_bounds(
     enclosure = _choice("enclosure", enclosure, ("interval", "affine"), n)
     propagate = _choice("propagate", propagate, ("kernel", "carried"), n)
     solve = _solve_choice(solve, params)
+    if coulomb not in ("taylor", "range"):
+        raise ValueError(f"coulomb must be 'taylor' or 'range', got {coulomb!r}")
+    layout = _layout(params)
+    if layout is None or "coulomb" not in layout.friction:
+        coulomb = "taylor"  # nothing to bound: the certificate records what was done
     if isinstance(splits, str):
         if splits != "auto":
             raise ValueError(f"splits must be a count, counts, a dict or 'auto', got {splits!r}")
@@ -1521,6 +1579,7 @@ def certified_bounds(
         solve=solve,
         max_pieces=max_pieces,
         refine=refine,
+        coulomb=coulomb,
     )
     lower = jnp.min(pieces["lower"], axis=0)
     upper = jnp.max(pieces["upper"], axis=0)
@@ -1540,13 +1599,15 @@ def certified_bounds(
         uncertain = np.asarray(params.hi) > np.asarray(params.lo)
         names = params.model.param_names
         note = ""
-        if any(name.startswith("coulomb[") for name in np.asarray(names)[uncertain]):
+        ranges = np.asarray(names)[uncertain]
+        if coulomb == "taylor" and any(name.startswith("coulomb[") for name in ranges):
             note = (
                 " With Coulomb friction uncertain: its smooth sign is steep within "
                 f"{COULOMB_VELOCITY} rad/s of rest, and where the other ranges spread the "
                 "joint velocities wider than that its curvature makes the remainder diverge "
                 "(the shipped arms' default box within 0.1 s; docs/methods.md, 'Why the "
-                "default box diverges'): narrow the Coulomb or the mass and payload ranges."
+                "default box diverges'): pass coulomb='range' (the sign bounded by its "
+                "range over the tube), or narrow the Coulomb or the mass and payload ranges."
             )
         raise DivergedError.at(
             where,
@@ -1574,6 +1635,7 @@ def certified_bounds(
         enclosure=enclosure,
         propagate=propagate,
         solve=solve,
+        coulomb=coulomb,
     )
     return bounds, certificate
 

@@ -356,7 +356,7 @@ def _nominal_torque(layout, local, revolute, q, qd, nominal, u, kp, kd):
 
 
 def chain_perturbation_jets(
-    layout: ChainLayout, q, qd, th, nominal, u, kp, kd, noise=None, precond=None
+    layout: ChainLayout, q, qd, th, nominal, u, kp, kd, noise=None, precond=None, sign=None
 ):
     """``gv = qdd - v`` of a spatial chain on jets: a list of ``n`` jets.
 
@@ -371,6 +371,12 @@ def chain_perturbation_jets(
             controller sees.
         precond: None (the tip-first ``U D U'`` solve, pivots the articulated
             inertias), or ``n x n`` constants ``P`` (:func:`solve_preconditioned`).
+        sign: None (the Coulomb parameters' error moves ``tanh(qd_j / v_s)``), or ``n``
+            constants of the backend, each an enclosure of ``tanh(qd_j / v_s)`` over
+            the states the jets stand for: the Coulomb error then moves that constant
+            (a bounded input: for every state there is one value in the enclosure
+            that gives the same ``gv``, so jets over the enclosure hold the true
+            expansion; the controller's own compensation keeps ``tanh``).
 
     Returns:
         ``n`` jets of ``gv`` (rad/s^2).
@@ -388,7 +394,10 @@ def chain_perturbation_jets(
     for j in range(n):
         total = -torque[j]
         for k, kind in enumerate(layout.friction):
-            moved = qd[j] if kind == "viscous" else _smooth_sign(qd[j])
+            if kind == "viscous":
+                moved = qd[j]
+            else:
+                moved = _smooth_sign(qd[j]) if sign is None else sign[j]
             total = total - delta[count + k * n + j] * moved
         f.append(total)
     if noise is not None:
