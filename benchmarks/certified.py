@@ -528,7 +528,7 @@ def main(argv=None):
     )
     parser.add_argument(
         "--coulomb",
-        choices=("taylor", "range"),
+        choices=("taylor", "range", "auto"),
         default="taylor",
         help="how a chain's Coulomb ranges enter the jets (certified_bounds' coulomb)",
     )

@@ -437,7 +437,18 @@ def simulate_batch(
 
 
 def _certified_body(
-    run, shared, *, noisy, kernel_steps, segments, enclosure, propagate, layout, free, solve
+    run,
+    shared,
+    *,
+    noisy,
+    kernel_steps,
+    segments,
+    enclosure,
+    propagate,
+    layout,
+    free,
+    solve,
+    coulomb="taylor",
 ):
     from rmijax.methods import certified
 
@@ -461,6 +472,7 @@ def _certified_body(
         free=free,
         fixed=None if free is None else fixed,
         solve=solve,
+        coulomb=coulomb,
     )
     return jnp.min(pieces["lower"], axis=0), jnp.max(pieces["upper"], axis=0)
 
@@ -477,6 +489,7 @@ def certified_batch(
     enclosure: str | None = None,
     propagate: str | None = None,
     solve: str | None = None,
+    coulomb: str = "taylor",
     mesh: Mesh | None = None,
 ) -> list[Bounds]:
     """:func:`rmijax.methods.certified.certified_bounds` of many runs, sharded like
@@ -488,8 +501,8 @@ def certified_batch(
             every box split into the same number of pieces (``splits="auto"`` is for
             the single-run call). Parameters certain in every box (``lo == hi``) are
             constants of the jets, as in the single-run call.
-        noise_lo, noise_hi, splits, kernel_steps, segments, enclosure, propagate, solve:
-            as ``certified_bounds``.
+        noise_lo, noise_hi, splits, kernel_steps, segments, enclosure, propagate, solve,
+            coulomb: as ``certified_bounds``.
         mesh: default :func:`device_mesh` over every device.
 
     Returns:
@@ -533,6 +546,7 @@ def certified_batch(
             "counts, or call rmijax.certified_bounds(..., splits='auto') per run"
         )
     solve = certified._solve_choice(solve, robots[0])
+    coulomb = certified._coulomb_choice(coulomb, robots[0])
     # fold the certain parameters where every box leaves the same ones certain; where
     # the boxes differ (or none is certain) every parameter is a variable
     frees = {certified._free_parameters(r) for r in robots}
@@ -561,6 +575,7 @@ def certified_batch(
         layout=layout,
         free=free,
         solve=solve,
+        coulomb=coulomb,
     )
     lower, upper = _run_batched(_certified_body, _stack(runs, mesh.size), shared, mesh, static)
     results = []

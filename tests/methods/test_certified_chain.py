@@ -311,30 +311,41 @@ def test_default_box_divergence_names_the_coulomb_ranges():
 def arm2_coulomb(tmp_path_factory):
     """The paper's two-joint arm as a URDF, masses +-5 % and Coulomb ranges 0-10 N m,
     0.5 s of ``hold``/``sine`` (joint 1 held at rest, where the smooth sign is steep),
-    certified with ``coulomb="range"``."""
+    certified with ``coulomb="range"`` and ``"auto"``."""
     from arm2_urdf import arm2_urdf
 
     path = tmp_path_factory.mktemp("arm2") / "arm2.urdf"
     path.write_text(arm2_urdf())
     params = rmijax.load_robot(path, mass=0.05, friction=dict(coulomb=(0.0, 10.0)))
     traj = rmijax.trajectory(["hold", "sine"], duration=0.5)
-    bounds, cert = certified.certified_bounds(traj, params, coulomb="range")
-    return traj, params, bounds, cert
+    runs = {mode: certified.certified_bounds(traj, params, coulomb=mode) for mode in MODES}
+    return traj, params, runs
 
 
-def test_coulomb_range_band_contains_samples(arm2_coulomb):
+MODES = ("range", "auto")
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_coulomb_range_band_contains_samples(arm2_coulomb, mode):
     """None of 216 constant-parameter runs (all 16 corners, 200 uniform draws) leaves the
-    band; without the remainder they do (teeth)."""
-    traj, params, bounds, cert = arm2_coulomb
-    assert cert.coulomb == "range"
+    band; without the remainder they do (teeth). With ``"auto"`` joint 1 (held at rest,
+    its tube narrow) keeps the expansion at most steps and joint 2 takes the range."""
+    traj, params, runs = arm2_coulomb
+    bounds, cert = runs[mode]
+    assert cert.coulomb == mode
     assert np.all(np.isfinite(np.asarray(bounds.upper - bounds.lower)))
+    if mode == "auto":
+        kept = np.asarray(cert.keep).mean(axis=(0, 1))  # share of steps per joint
+        assert kept[0] > 0.5 and kept[1] < 0.5, kept
+    else:
+        assert cert.keep is None
     states, _ = rmijax.simulate(traj, params, _samples(params, corners=0, draws=200))
     lo, hi = np.asarray(params.lo), np.asarray(params.hi)
     bits = np.array(np.meshgrid(*[[0, 1]] * lo.size, indexing="ij")).reshape(lo.size, -1).T
     corners, _ = rmijax.simulate(traj, params, np.where(bits == 1, hi, lo))
     states = np.concatenate([np.asarray(states), np.asarray(corners)])
     assert _escape(bounds, states) <= TOL
-    bare, _ = certified.certified_bounds(traj, params, coulomb="range", remainder_scale=0.0)
+    bare, _ = certified.certified_bounds(traj, params, coulomb=mode, remainder_scale=0.0)
     assert _escape(bare, states) > 1e-9
 
 
@@ -350,7 +361,9 @@ def test_coulomb_range_sign_encloses_tanh_over_the_tube():
     d_hi = jnp.asarray(rng.uniform(0.5, 1.0, size=p))
     d_lo = -d_hi
     rhat = jnp.asarray(rng.uniform(0, 0.01, size=(n, 2)))
-    lo, hi = (np.asarray(v) for v in certified._sign_range(xc, sens, sens2, d_lo, d_hi, rhat))
+    lo, hi, keep = certified._sign_range(xc, sens, sens2, d_lo, d_hi, rhat)
+    lo, hi = np.asarray(lo), np.asarray(hi)
+    assert keep is None
     d = rng.uniform(-1, 1, size=(2000, p))
     r = rng.uniform(-1, 1, size=(2000, n))
     d[::2], r[::2] = np.sign(d[::2]), np.sign(r[::2])  # half of them vertices
@@ -368,30 +381,38 @@ def test_coulomb_range_sign_encloses_tanh_over_the_tube():
     assert np.all(hi - lo <= 1.5 * spread), (hi - lo) / spread
 
 
-PAIRS = [("interval", "kernel"), ("affine", "carried")]
+CHECKED = [("interval", "kernel", "range"), ("affine", "carried", "range")]
+CHECKED += [("interval", "kernel", "auto")]
 
 
-@pytest.mark.parametrize(("enclosure", "propagate"), PAIRS)
+@pytest.mark.parametrize(("enclosure", "propagate", "mode"), CHECKED)
 def test_checker_verifies_a_coulomb_range_certificate(
-    arm2_coulomb, enclosure, propagate, monkeypatch
+    arm2_coulomb, enclosure, propagate, mode, monkeypatch
 ):
     """The checker recomputes the sign's enclosure from its own tube and accepts the first
-    steps of a ``coulomb="range"`` certificate; it rejects the certificate of a mutant
-    certifier whose enclosure is the centre's sign alone (a point: the Coulomb errors'
-    effect then ignores how far the tube's velocities spread), and the halved remainder."""
-    traj, params, _, _ = arm2_coulomb
+    steps of a ``coulomb="range"`` or ``"auto"`` certificate (``"auto"``: over these
+    steps joint 1 keeps the expansion, joint 2 takes the range from step 2; the checker
+    follows ``cert.keep``); it rejects the certificate of a mutant certifier whose
+    enclosure is the centre's sign alone (a point: the Coulomb errors' effect then
+    ignores how far the tube's velocities spread), and the halved remainder."""
+    traj, params, _ = arm2_coulomb
     short = _short(traj, 6)
-    options = dict(enclosure=enclosure, propagate=propagate, coulomb="range")
+    options = dict(enclosure=enclosure, propagate=propagate, coulomb=mode)
     _, cert = certified.certified_bounds(short, params, **options)
+    if mode == "auto":
+        keep = np.asarray(cert.keep)[0]
+        assert keep[:, 0].all() and not keep[2:, 1].any(), keep
+        bad = dataclasses.replace(cert, keep=cert.keep.at[0, 0, 0].set(0.5))
+        assert "not 0 or 1" in check_certificate(bad, short, params, steps=1).reason
     result = check_certificate(cert, short, params, steps=5)
     assert result.ok, result.reason
     _, halved = certified.certified_bounds(short, params, remainder_scale=0.5, **options)
     rejected = check_certificate(halved, short, params, steps=5)
     assert not rejected.ok and "below the recomputed bound" in rejected.reason
 
-    def centre_only(xc, sens, sens2, d_lo, d_hi, rhat):
+    def centre_only(xc, sens, sens2, d_lo, d_hi, rhat, auto=False):
         sign = jnp.tanh(xc[:, 1] * (1.0 / rmijax.robots.spatial.COULOMB_VELOCITY))
-        return sign, sign
+        return sign, sign, jnp.zeros_like(sign) if auto else None
 
     monkeypatch.setattr(certified, "_sign_range", centre_only)
     certified._certify.clear_cache()  # compiled with the honest enclosure

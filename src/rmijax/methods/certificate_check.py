@@ -368,6 +368,8 @@ def _evaluate(backend, state, grad_d, sens2, th, noise, consts, p, n, noisy):
         ]
     if consts.get("sign") is not None:  # intervals: constant jets that hold each sign
         extra["sign"] = [Jet(backend.point(v), zero_g, zero_h, backend) for v in consts["sign"]]
+    if consts.get("keep") is not None:
+        extra["keep"] = [Jet(backend.point(v), zero_g, zero_h, backend) for v in consts["keep"]]
     return consts["jets"](
         q,
         qd,
@@ -498,14 +500,16 @@ def check_certificate(cert, traj, params, *, steps: int | None = None, pieces=No
             f"{cert.solve!r}: pass the Certificate that certified_bounds returned"
         )
     layout = _layout(params)
-    ranged = cert.coulomb == "range"
-    if cert.coulomb not in ("taylor", "range") or (
-        ranged and (layout is None or "coulomb" not in layout.friction)
+    ranged = cert.coulomb in ("range", "auto")
+    if (
+        cert.coulomb not in ("taylor", "range", "auto")
+        or (ranged and (layout is None or "coulomb" not in layout.friction))
+        or ((cert.coulomb == "auto") != (cert.keep is not None))
     ):
         raise ValueError(
-            "check_certificate: cert.coulomb must be 'taylor', or 'range' for a chain with "
-            f"Coulomb parameters, got {cert.coulomb!r}: pass the Certificate that "
-            "certified_bounds returned for these params"
+            "check_certificate: cert.coulomb must be 'taylor', or 'range' or 'auto' (with "
+            f"cert.keep) for a chain with Coulomb parameters, got {cert.coulomb!r}: pass "
+            "the Certificate that certified_bounds returned for these params"
         )
     iv = _iv()
     backend = _MpBackend(iv)
@@ -555,6 +559,7 @@ def check_certificate(cert, traj, params, *, steps: int | None = None, pieces=No
             key: np.asarray(getattr(cert, key)[piece], np.float64)
             for key in ("state", "sens", "sens2", "injected", "remainder", "center")
         }
+        data["keep"] = None if cert.keep is None else np.asarray(cert.keep[piece], np.float64)
         injected, remainder, center = data["injected"], data["remainder"], data["center"]
         # below, d and its coefficients: the uncertain parameters only (the tiling check
         # above holds every piece's centre in it, so a certain one's is its value, d = 0)
@@ -625,12 +630,16 @@ def check_certificate(cert, traj, params, *, steps: int | None = None, pieces=No
     return CheckResult(True, steps, "")
 
 
-def _sign_range(iv, state, sens, sens2, d_box, remainder):
+def _sign_range(iv, state, sens, sens2, d_box, remainder, keep=None):
     """Per joint an ``mpmath`` interval holding ``tanh(qd_j / v_s)`` over the tube of one
     step (``x_c + range(S d + 1/2 Q[d, d]) + [-r, r]``), as the jets write it
-    (``qd * (1 / v_s)``, the float ``1 / v_s``)."""
+    (``qd * (1 / v_s)``, the float ``1 / v_s``); 0 where ``keep`` is 1 (the sign keeps its
+    expansion there)."""
     out = []
     for i in range(state.shape[0]):
+        if keep is not None and keep[i] == 1:
+            out.append(iv.mpf(0))
+            continue
         qd = (
             iv.mpf(float(state[i, 1]))
             + _poly_range(iv, _arr(iv, sens[i, 1]), _arr(iv, sens2[i, 1]), d_box)
@@ -841,7 +850,12 @@ def _check_step(iv, backend, k, data, u, gens_d, setup):
         precond=_preconditioner(setup, state[k], center),
     )
     if setup["ranged"]:  # the Coulomb signs' enclosures over the tube of step k
-        consts["sign"] = _sign_range(iv, state[k], sens[k], sens2[k], d_box, remainder[k])
+        keep = None if data["keep"] is None else data["keep"][k]
+        consts["sign"] = _sign_range(iv, state[k], sens[k], sens2[k], d_box, remainder[k], keep)
+        if keep is not None:  # the certificate's choice: any is sound
+            if not np.all((keep == 0) | (keep == 1)):
+                return f"cert.keep at step {k} is not 0 or 1", None
+            consts["keep"] = [iv.mpf(float(v)) for v in keep]
     zero = iv.mpf(0)
     xc, s1, s2 = _arr(iv, state[k]), _arr(iv, sens[k]), _arr(iv, sens2[k])
     noise0 = np.full((n, 2), zero, dtype=object) if noisy else None

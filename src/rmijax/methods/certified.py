@@ -116,6 +116,15 @@ AUTO_CHUNK = 4
 the same size so that one compilation serves all rounds (affine jets use
 :func:`_affine_batch`'s size)."""
 
+COULOMB_MODES = ("taylor", "range", "auto")
+"""``certified_bounds(..., coulomb=...)``: how a chain's Coulomb errors enter the jets."""
+
+COULOMB_RANGE_SPREAD = COULOMB_VELOCITY
+"""``coulomb="auto"``: a joint's Coulomb sign is bounded by its range at a step where the
+tube's velocities spread wider than this (rad/s); elsewhere it keeps its expansion.
+Roughly, the expansion's remainder there grows like ``(spread / v_s)^2`` and the range's
+input like ``spread / v_s``, so they cross near ``v_s``."""
+
 _PIECES = "pieces"  # the vmapped axis of pieces certified together (_certify)
 
 _AFFINE_BUFFER = 2_200_000  # bytes of affine jet buffers evaluated together (_affine_batch)
@@ -335,9 +344,12 @@ class Certificate:
             generators are not stored: :func:`check_certificate` carries its own) (static).
         solve: ``"articulated"`` or ``"preconditioned"``: how the jets solve ``M gv =
             f`` (the preconditioner is recomputed, not stored: any is sound) (static).
-        coulomb: ``"taylor"`` or ``"range"``: how a chain's Coulomb errors entered the
-            jets (the sign's enclosures are recomputed from each step's tube, not
-            stored) (static).
+        coulomb: ``"taylor"``, ``"range"`` or ``"auto"``: how a chain's Coulomb errors
+            entered the jets (the sign's enclosures are recomputed from each step's tube,
+            not stored) (static).
+        keep: with ``coulomb="auto"``, (P, T, n): 1 where joint ``j``'s sign kept its
+            expansion at step ``k``, 0 where it was bounded by its range (a choice, sound
+            either way: the checker follows it); else None.
     """
 
     center: jax.Array
@@ -359,6 +371,7 @@ class Certificate:
     propagate: str = dataclasses.field(default="kernel", metadata=dict(static=True))
     solve: str = dataclasses.field(default="articulated", metadata=dict(static=True))
     coulomb: str = dataclasses.field(default="taylor", metadata=dict(static=True))
+    keep: jax.Array | None = None
 
     @property
     def n_pieces(self) -> int:
@@ -490,7 +503,9 @@ def _perturbation_tape(layout, n, p, noisy, precond=False, ranged=False):
     then the constants ``nominal (p), u (n), kp (n), kd (n)``, with ``precond`` the
     preconditioner ``P (n * n)`` of the solve, row by row
     (:func:`rmijax.methods.chain_jets.solve_preconditioned`), and with ``ranged`` (a
-    chain only) the enclosures of the Coulomb signs ``(n)`` (``coulomb="range"``).
+    chain only; ``"range"`` or ``"auto"``, the ``coulomb`` option) with ``"auto"`` the
+    multipliers ``keep (n)`` of the smooth signs, then the Coulomb signs' enclosures
+    ``(n)``.
     """
     tape = Tape(_tape_leaves(n, p, noisy, precond, ranged))
     leaves = tape.leaves()
@@ -503,24 +518,30 @@ def _perturbation_tape(layout, n, p, noisy, precond=False, ranged=False):
     nominal = [next(take) for _ in range(p)]
     u, kp, kd = ([next(take) for _ in range(n)] for _ in range(3))
     matrix = [[next(take) for _ in range(n)] for _ in range(n)] if precond else None
-    extra = dict(sign=[next(take) for _ in range(n)]) if ranged else {}
+    extra = {}
+    if ranged == "auto":
+        extra["keep"] = [next(take) for _ in range(n)]
+    if ranged:
+        extra["sign"] = [next(take) for _ in range(n)]
     gv = perturbation_jets(layout)(q, qd, th, nominal, u, kp, kd, noise, matrix, **extra)
     return tape.arrays(), tuple(node.index for node in gv)
 
 
 def _tape_leaves(n, p, noisy, precond=False, ranged=False):
     """How many leaves :func:`_perturbation_tape` has for ``n`` joints, ``p`` parameters."""
-    leaves = 2 * n + p + (2 * n if noisy else 0) + p + 3 * n
-    return leaves + (n * n if precond else 0) + (n if ranged else 0)
+    leaves = 2 * n + p + (2 * n if noisy else 0) + p + 3 * n + (n * n if precond else 0)
+    return leaves + (n if ranged else 0) + (n if ranged == "auto" else 0)
 
 
 def _constants(consts):
     """The tape's constant leaves as ``(lo, hi)``: nominal, u, kp, kd, the preconditioner
-    if given (all points), and the Coulomb signs' enclosures if given (``consts["sign"]``,
-    a pair of (n,) ends)."""
+    and the signs' multipliers ``consts["keep"]`` if given (all points), then the Coulomb
+    signs' enclosures if given (``consts["sign"]``, a pair of (n,) ends)."""
     parts = [consts["nominal"], consts["u"], consts["kp"], consts["kd"]]
     if consts.get("precond") is not None:
         parts.append(jnp.asarray(consts["precond"]).reshape(-1))
+    if consts.get("keep") is not None:
+        parts.append(consts["keep"])
     points = jnp.concatenate(parts)
     if consts.get("sign") is None:
         return points, points
@@ -530,7 +551,10 @@ def _constants(consts):
 
 def _tape_flags(consts):
     """``(precond, ranged)`` of the tape that ``consts`` feed."""
-    return consts.get("precond") is not None, consts.get("sign") is not None
+    ranged = False
+    if consts.get("sign") is not None:
+        ranged = "auto" if consts.get("keep") is not None else "range"
+    return consts.get("precond") is not None, ranged
 
 
 def solve_matrix(params):
@@ -740,7 +764,9 @@ def _certify_piece(
     finite the remaining steps are skipped (their outputs set to ``inf``); under a
     ``vmap`` named ``axis_name`` only once every piece's is not finite. With
     ``coulomb="range"`` (static) the Coulomb errors move an enclosure of their sign over
-    each step's tube (:func:`_sign_range`) instead of its Taylor expansion.
+    each step's tube (:func:`_sign_range`) instead of its Taylor expansion; with
+    ``"auto"`` where the tube's velocities spread wide (the output also holds ``keep``
+    (T, n), the choice per step).
     """
     n = traj.n_joints
     p = center.shape[0]
@@ -780,15 +806,20 @@ def _certify_piece(
         rhat = jnp.full_like(rhat, jnp.inf)
         blocks = jnp.full((n, 10), jnp.inf, dtype) if diagnostics else None
         ys = tuple(jnp.full_like(a, jnp.inf) for a in (xc, sens, sens2, rhat, rhat))
-        return (xc, sens, sens2, buf, tail_max, rhat, gens, gens_d, k + 1), (*ys, blocks)
+        keep = jnp.ones((n,), dtype) if coulomb == "auto" else None
+        return (xc, sens, sens2, buf, tail_max, rhat, gens, gens_d, k + 1), (*ys, blocks, keep)
 
     def live_step(carry, u):
         xc, sens, sens2, buf, tail_max, rhat, gens, gens_d, k = carry
         consts = dict(nominal=nominal, u=u, kp=kp, kd=kd, fixed=fixed)
         if matrix_fn is not None:
             consts["precond"] = _preconditioner(matrix_fn, xc, center, fixed, free)
-        if coulomb == "range":
-            consts["sign"] = _sign_range(xc, sens, sens2, d_lo, d_hi, rhat)
+        keep = None
+        if coulomb != "taylor":
+            *consts["sign"], keep = _sign_range(
+                xc, sens, sens2, d_lo, d_hi, rhat, auto=coulomb == "auto"
+            )
+            consts["keep"] = keep
         # --- the centre: coefficients of the next Taylor model ---------------
         zero_noise = Interval(jnp.zeros((n, 2), dtype)) if noisy else None
         g0, g1, g2 = _evaluate(
@@ -884,7 +915,7 @@ def _certify_piece(
             )
             rhat_next = rhat_next * (1.0 + 4 * _EPS) + _TINY
         carry = (new[0], new[1], new[2], buf, tail_max, rhat_next, gens, gens_d, k + 1)
-        return carry, (new[0], new[1], new[2], injected, rhat_next, blocks)
+        return carry, (new[0], new[1], new[2], injected, rhat_next, blocks, keep)
 
     x0 = traj.x_n[0]
     init = (
@@ -898,7 +929,7 @@ def _certify_piece(
         jnp.zeros((p, 2 * n, columns), dtype),
         jnp.asarray(0, jnp.int32),
     )
-    _, (xs, ss, qs, injected, rhats, blocks) = jax.lax.scan(step, init, traj.u_d[:-1])
+    _, (xs, ss, qs, injected, rhats, blocks, keeps) = jax.lax.scan(step, init, traj.u_d[:-1])
     cat = lambda first, rest: jnp.concatenate([first[None], rest], 0)  # noqa: E731
     state = cat(x0, xs)
     sens = cat(init[1], ss)
@@ -916,17 +947,25 @@ def _certify_piece(
         lower=band.lo,
         upper=band.hi,
     )
+    out |= dict(keep=keeps) if coulomb == "auto" else {}
     return out | (dict(w_blocks=blocks) if diagnostics else {})
 
 
-def _sign_range(xc, sens, sens2, d_lo, d_hi, rhat):
-    """``(lo, hi)`` (n,): an enclosure of the smooth Coulomb sign ``tanh(qd_j / v_s)`` over
-    the tube of one step (``x_c + range(S d + 1/2 Q[d, d]) + [-r, r]``, every ``d`` of the
-    piece), rounded outward; the same expression as the jets' (``qd * (1 / v_s)``)."""
+def _sign_range(xc, sens, sens2, d_lo, d_hi, rhat, auto=False):
+    """``(lo, hi, keep)`` (n,) each: an enclosure of the smooth Coulomb sign ``tanh(qd_j /
+    v_s)`` over the tube of one step (``x_c + range(S d + 1/2 Q[d, d]) + [-r, r]``, every
+    ``d`` of the piece), rounded outward, the same expression as the jets' (``qd * (1 /
+    v_s)``); ``keep`` None. With ``auto`` only where the tube's velocities spread wider
+    than :data:`COULOMB_RANGE_SPREAD`: elsewhere ``keep = 1`` and the enclosure is 0 (the
+    sign keeps its expansion)."""
     low, high = _poly_range(sens, sens2, d_lo, d_hi)
     qd = Interval(xc[:, 1]) + Interval(low[:, 1], high[:, 1]) + Interval(-rhat[:, 1], rhat[:, 1])
     sign = tanh(qd * (1.0 / COULOMB_VELOCITY))
-    return sign.lo, sign.hi
+    if not auto:
+        return sign.lo, sign.hi, None
+    wide = (qd.hi - qd.lo) > COULOMB_RANGE_SPREAD
+    zero = jnp.zeros_like(sign.lo)
+    return jnp.where(wide, sign.lo, zero), jnp.where(wide, sign.hi, zero), jnp.where(wide, 0.0, 1.0)
 
 
 def _carried_terms(g1, g2, v_hat, d_rad, gens_d, n, p, kp, kd, dt):
@@ -1091,7 +1130,7 @@ def _certify(
     )
     n, p = traj.n_joints, params.n_params
     if enclosure == "affine":
-        precond, ranged = solve == "preconditioned", coulomb == "range"
+        precond, ranged = solve == "preconditioned", coulomb != "taylor" and coulomb
         batch = _affine_batch(layout, n, p, centers.shape[1], noisy, precond, ranged)
     else:
         batch = centers.shape[0]
@@ -1411,7 +1450,7 @@ def _certify_box(
         if enclosure == "affine":  # the batch that keeps the affine buffers in cache
             variables = lo.size if free is None else len(free)
             precond = solve == "preconditioned"
-            ranged = coulomb == "range"
+            ranged = coulomb != "taylor" and coulomb
             chunk = _affine_batch(layout, traj.n_joints, lo.size, variables, noisy, precond, ranged)
         else:
             chunk = AUTO_CHUNK
@@ -1506,11 +1545,14 @@ def certified_bounds(
             output is cut while ``max_pieces`` allows, largest first (a tightness
             target: the remainder is what a band holds beyond the polynomial's range).
         coulomb: how the Coulomb ranges of a chain enter the jets: ``"taylor"`` (the
-            smooth sign ``tanh(qd / v_s)`` expanded with the rest) or ``"range"`` (each
+            smooth sign ``tanh(qd / v_s)`` expanded with the rest), ``"range"`` (each
             step, the Coulomb error moves an enclosure of the sign over that step's
             tube: a bounded input, no curvature; near rest, where the tube's velocities
             spread wider than ``v_s``, the Taylor expansion's remainder diverges on the
-            shipped arms' default box). No effect without uncertain Coulomb ranges.
+            shipped arms' default box) or ``"auto"`` (per joint and step: the range
+            where the tube's velocities spread wider than
+            :data:`COULOMB_RANGE_SPREAD`, the expansion elsewhere). No effect without
+            uncertain Coulomb ranges.
 
     Returns:
         ``(bounds, certificate)``: :class:`~rmijax.methods.base.Bounds` with
@@ -1555,11 +1597,7 @@ def certified_bounds(
     enclosure = _choice("enclosure", enclosure, ("interval", "affine"), n)
     propagate = _choice("propagate", propagate, ("kernel", "carried"), n)
     solve = _solve_choice(solve, params)
-    if coulomb not in ("taylor", "range"):
-        raise ValueError(f"coulomb must be 'taylor' or 'range', got {coulomb!r}")
-    layout = _layout(params)
-    if layout is None or "coulomb" not in layout.friction:
-        coulomb = "taylor"  # nothing to bound: the certificate records what was done
+    coulomb = _coulomb_choice(coulomb, params)
     if isinstance(splits, str):
         if splits != "auto":
             raise ValueError(f"splits must be a count, counts, a dict or 'auto', got {splits!r}")
@@ -1636,6 +1674,7 @@ def certified_bounds(
         propagate=propagate,
         solve=solve,
         coulomb=coulomb,
+        keep=pieces.get("keep"),
     )
     return bounds, certificate
 
@@ -1648,6 +1687,18 @@ def _choice(name, value, options, n_joints):
     if value not in options:
         raise ValueError(f"{name} must be one of {options} or None, got {value!r}")
     return value
+
+
+def _coulomb_choice(coulomb, params):
+    """``coulomb`` if it is ``"taylor"``, ``"range"`` or ``"auto"``; ``"taylor"`` where the
+    model has no Coulomb parameters (nothing to bound: the certificate records what was
+    done)."""
+    if coulomb not in COULOMB_MODES:
+        raise ValueError(f"coulomb must be one of {COULOMB_MODES}, got {coulomb!r}")
+    layout = _layout(params)
+    if layout is None or "coulomb" not in layout.friction:
+        return "taylor"
+    return coulomb
 
 
 def _solve_choice(solve, params):

@@ -356,7 +356,18 @@ def _nominal_torque(layout, local, revolute, q, qd, nominal, u, kp, kd):
 
 
 def chain_perturbation_jets(
-    layout: ChainLayout, q, qd, th, nominal, u, kp, kd, noise=None, precond=None, sign=None
+    layout: ChainLayout,
+    q,
+    qd,
+    th,
+    nominal,
+    u,
+    kp,
+    kd,
+    noise=None,
+    precond=None,
+    sign=None,
+    keep=None,
 ):
     """``gv = qdd - v`` of a spatial chain on jets: a list of ``n`` jets.
 
@@ -377,6 +388,9 @@ def chain_perturbation_jets(
             (a bounded input: for every state there is one value in the enclosure
             that gives the same ``gv``, so jets over the enclosure hold the true
             expansion; the controller's own compensation keeps ``tanh``).
+        keep: None, or with ``sign`` ``n`` constants, each 0 or 1: joint ``j``'s Coulomb
+            error moves ``keep_j tanh(qd_j / v_s) + sign_j`` (1 and an enclosure of 0:
+            the expansion; 0 and the sign's enclosure: the bounded input).
 
     Returns:
         ``n`` jets of ``gv`` (rad/s^2).
@@ -398,6 +412,8 @@ def chain_perturbation_jets(
                 moved = qd[j]
             else:
                 moved = _smooth_sign(qd[j]) if sign is None else sign[j]
+                if sign is not None and keep is not None:
+                    moved = _smooth_sign(qd[j]) * keep[j] + sign[j]
             total = total - delta[count + k * n + j] * moved
         f.append(total)
     if noise is not None:
