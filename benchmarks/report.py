@@ -383,6 +383,8 @@ CERTIFIED_FILES = (
     "certified_auto_cpu.json",
     "certified_auto_preset4_cpu.json",
     "certified_auto_panda_cpu.json",
+    "certified_arms_range_box_cpu.json",
+    "certified_arms_range_cpu.json",
 )
 """Results of ``benchmarks/certified.py``, in the order the table lists them."""
 
