@@ -219,3 +219,8 @@ def test_certified_batch_on_a_loaded_chain_equals_the_single_run_call():
     again = rmijax.load_robot("ur5e", payload=(0.0, 0.2), friction=dict(coulomb=(0.0, 0.0)))
     for got, want in zip(fleet.certified_batch(short, [payload, again]), batches[0], strict=True):
         np.testing.assert_array_equal(got.upper, want.upper)
+    # the Coulomb ranges bounded by the sign's range, as the single-run call does
+    got = fleet.certified_batch(short[1:], [friction], coulomb="range")[0]
+    want = rmijax.certified_bounds(short[1], friction, coulomb="range")[0]
+    np.testing.assert_allclose(got.upper, want.upper, rtol=1e-13, atol=1e-15)
+    assert not np.allclose(got.upper, batches[1][1].upper, rtol=1e-9, atol=0)
