@@ -219,8 +219,26 @@ def test_certified_batch_on_a_loaded_chain_equals_the_single_run_call():
     again = rmijax.load_robot("ur5e", payload=(0.0, 0.2), friction=dict(coulomb=(0.0, 0.0)))
     for got, want in zip(fleet.certified_batch(short, [payload, again]), batches[0], strict=True):
         np.testing.assert_array_equal(got.upper, want.upper)
-    # the Coulomb ranges bounded by the sign's range, as the single-run call does
-    got = fleet.certified_batch(short[1:], [friction], coulomb="range")[0]
-    want = rmijax.certified_bounds(short[1], friction, coulomb="range")[0]
-    np.testing.assert_allclose(got.upper, want.upper, rtol=1e-13, atol=1e-15)
-    assert not np.allclose(got.upper, batches[1][1].upper, rtol=1e-9, atol=0)
+
+
+def test_certified_batch_bounds_coulomb_by_range(tmp_path):
+    """``coulomb="range"`` reaches the batch: two runs of the two-joint URDF arm with
+    Coulomb ranges (20 and 12 steps of ``hold``/``sine``) equal the single-run call with
+    it, and differ from the Taylor sign's bands."""
+    from arm2_urdf import arm2_urdf
+
+    path = tmp_path / "arm2.urdf"
+    path.write_text(arm2_urdf())
+    params = rmijax.load_robot(path, mass=0.05, friction=dict(coulomb=(0.0, 10.0)))
+    traj = rmijax.trajectory(["hold", "sine"], duration=0.2)
+    keys = ("t", "q_d", "qd_d", "qdd_d", "u_d", "x_n", "qdd_n")
+    runs = [
+        dataclasses.replace(traj, **{k: getattr(traj, k)[: s + 1] for k in keys}) for s in (20, 12)
+    ]
+    batch = fleet.certified_batch(runs, params, coulomb="range")
+    for run, got in zip(runs, batch, strict=True):
+        want = rmijax.certified_bounds(run, params, coulomb="range")[0]
+        np.testing.assert_allclose(got.upper, want.upper, rtol=1e-13, atol=1e-15)
+        np.testing.assert_allclose(got.lower, want.lower, rtol=1e-13, atol=1e-15)
+        taylor = rmijax.certified_bounds(run, params)[0]
+        assert not np.allclose(got.upper, taylor.upper, rtol=1e-9, atol=0)
