@@ -54,7 +54,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from rmijax._intervals import Jet
-from rmijax.methods.certified import _layout, perturbation_jets, solve_matrix
+from rmijax.methods.certified import COULOMB_MODES, _layout, perturbation_jets, solve_matrix
 from rmijax.robots.spatial import COULOMB_VELOCITY
 
 __all__ = ["CheckResult", "check_certificate"]
@@ -502,7 +502,7 @@ def check_certificate(cert, traj, params, *, steps: int | None = None, pieces=No
     layout = _layout(params)
     ranged = cert.coulomb in ("range", "auto")
     if (
-        cert.coulomb not in ("taylor", "range", "auto")
+        cert.coulomb not in COULOMB_MODES
         or (ranged and (layout is None or "coulomb" not in layout.friction))
         or ((cert.coulomb == "auto") != (cert.keep is not None))
     ):
@@ -511,6 +511,13 @@ def check_certificate(cert, traj, params, *, steps: int | None = None, pieces=No
             f"cert.keep) for a chain with Coulomb parameters, got {cert.coulomb!r}: pass "
             "the Certificate that certified_bounds returned for these params"
         )
+    # the choice of sign per joint and step is the certificate's (either is sound), but
+    # only 0 (enclose the sign's range) and 1 (keep the Taylor sign) mean anything
+    if cert.keep is not None:
+        keep_all = np.asarray(cert.keep, np.float64)
+        if not np.all((keep_all == 0) | (keep_all == 1)):
+            bad = tuple(int(i) for i in np.argwhere((keep_all != 0) & (keep_all != 1))[0])
+            return CheckResult(False, 0, f"cert.keep{list(bad)} is not 0 or 1")
     iv = _iv()
     backend = _MpBackend(iv)
     n = traj.n_joints
@@ -852,9 +859,7 @@ def _check_step(iv, backend, k, data, u, gens_d, setup):
     if setup["ranged"]:  # the Coulomb signs' enclosures over the tube of step k
         keep = None if data["keep"] is None else data["keep"][k]
         consts["sign"] = _sign_range(iv, state[k], sens[k], sens2[k], d_box, remainder[k], keep)
-        if keep is not None:  # the certificate's choice: any is sound
-            if not np.all((keep == 0) | (keep == 1)):
-                return f"cert.keep at step {k} is not 0 or 1", None
+        if keep is not None:  # the certificate's choice (0 or 1, checked above): any is sound
             consts["keep"] = [iv.mpf(float(v)) for v in keep]
     zero = iv.mpf(0)
     xc, s1, s2 = _arr(iv, state[k]), _arr(iv, sens[k]), _arr(iv, sens2[k])

@@ -410,10 +410,12 @@ def chain_perturbation_jets(
         for k, kind in enumerate(layout.friction):
             if kind == "viscous":
                 moved = qd[j]
+            elif sign is None:
+                moved = _smooth_sign(qd[j])
+            elif keep is None:
+                moved = sign[j]
             else:
-                moved = _smooth_sign(qd[j]) if sign is None else sign[j]
-                if sign is not None and keep is not None:
-                    moved = _smooth_sign(qd[j]) * keep[j] + sign[j]
+                moved = _smooth_sign(qd[j]) * keep[j] + sign[j]
             total = total - delta[count + k * n + j] * moved
         f.append(total)
     if noise is not None:
