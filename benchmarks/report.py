@@ -385,6 +385,7 @@ CERTIFIED_FILES = (
     "certified_auto_panda_cpu.json",
     "certified_arms_range_box_cpu.json",
     "certified_arms_range_cpu.json",
+    "certified_ur5e_box_cpu.json",
 )
 """Results of ``benchmarks/certified.py``, in the order the table lists them."""
 
@@ -411,8 +412,11 @@ def certified_table():
             pair += f", {r['segments']} segment" if r.get("segments", 3) != 3 else ""
             # rows before the solve option (stop 32) solved by articulated pivots
             pair += ", preconditioned" if r.get("solve") == "preconditioned" else ""
-            # Coulomb ranges bounded by the sign's range (stop 35 on): coulomb="range"
-            pair += ", Coulomb by range" if r.get("coulomb") == "range" else ""
+            # Coulomb ranges bounded by the sign's range (stop 35 on): coulomb="range", or
+            # per joint and step where the tube's velocities spread wide: coulomb="auto"
+            pair += {"range": ", Coulomb by range", "auto": ", Coulomb auto"}.get(
+                r.get("coulomb"), ""
+            )
             if "diverged" in r:
                 step = r["diverged"].split("(step ")[1].split(",")[0]
                 rows.append(
