@@ -70,6 +70,7 @@ from rmijax.methods.certified import (  # noqa: E402
     AUTO_MAX_PIECES,
     AUTO_REFINE,
     _choice,
+    _coulomb_choice,
     _solve_choice,
     certified_bounds,
 )
@@ -529,7 +530,7 @@ def main(argv=None):
     parser.add_argument(
         "--coulomb",
         choices=("taylor", "range", "auto"),
-        default="taylor",
+        default="auto",
         help="how a chain's Coulomb ranges enter the jets (certified_bounds' coulomb)",
     )
     parser.add_argument(
@@ -594,8 +595,7 @@ def main(argv=None):
                 segments=args.segments,
                 solve=args.solve,
             )
-            if args.coulomb != "taylor":
-                options["coulomb"] = args.coulomb
+            options["coulomb"] = args.coulomb
             if args.max_pieces is not None:
                 options["max_pieces"] = args.max_pieces
             if args.refine is not None:
@@ -623,7 +623,10 @@ def main(argv=None):
                 segments=args.segments,
                 solve=_solve_choice(args.solve, params),
             )
-            row |= dict(coulomb=args.coulomb) if args.coulomb != "taylor" else {}
+            # what the run chose (taylor where there are no Coulomb ranges); rows without
+            # the field are taylor (the default before stop 36)
+            coulomb = _coulomb_choice(args.coulomb, params)
+            row |= dict(coulomb=coulomb) if coulomb != "taylor" else {}
             rows.append(row)
             print(f"{name:26} diverged after {row['seconds']} s: {err}", flush=True)
             if args.json:

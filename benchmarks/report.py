@@ -386,6 +386,7 @@ CERTIFIED_FILES = (
     "certified_arms_range_box_cpu.json",
     "certified_arms_range_cpu.json",
     "certified_ur5e_box_cpu.json",
+    "certified_arms_auto_cpu.json",
 )
 """Results of ``benchmarks/certified.py``, in the order the table lists them."""
 

@@ -448,7 +448,7 @@ def _certified_body(
     layout,
     free,
     solve,
-    coulomb="taylor",
+    coulomb="auto",
 ):
     from rmijax.methods import certified
 
@@ -489,7 +489,7 @@ def certified_batch(
     enclosure: str | None = None,
     propagate: str | None = None,
     solve: str | None = None,
-    coulomb: str = "taylor",
+    coulomb: str = "auto",
     mesh: Mesh | None = None,
 ) -> list[Bounds]:
     """:func:`rmijax.methods.certified.certified_bounds` of many runs, sharded like

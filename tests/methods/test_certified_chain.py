@@ -288,15 +288,16 @@ def test_affine_hessian_over_the_panda_mass_and_payload_box():
 
 
 def test_default_box_divergence_names_the_coulomb_ranges():
-    """The UR5e's whole default box diverges within its first 0.1 s (step 8; the Coulomb
-    ranges set it off, ``docs/methods.md``): the error says so and names the fix, and
+    """With the Coulomb sign expanded (``coulomb="taylor"``) the UR5e's whole default box
+    diverges within its first 0.1 s (step 8; the Coulomb ranges set it off,
+    ``docs/methods.md``): the error says so and names the fix, and
     without the Coulomb ranges the same run is finite."""
     box = default_box("ur5e")
     params = rmijax.load_robot("ur5e", **box)
     traj = _short(real_arm_case("ur5e").traj, 10)
     message = r"(?s)step 8.*gains\. With Coulomb.*coulomb=.range.*narrow the Coulomb"
     with pytest.raises(rmijax.DivergedError, match=message):
-        certified.certified_bounds(traj, params)
+        certified.certified_bounds(traj, params, coulomb="taylor")
     no_coulomb = dict(box, friction=dict(viscous=box["friction"]["viscous"]))
     bounds, _ = certified.certified_bounds(traj, rmijax.load_robot("ur5e", **no_coulomb))
     assert np.all(np.isfinite(np.asarray(bounds.upper - bounds.lower)))
@@ -424,17 +425,22 @@ def test_checker_verifies_a_coulomb_range_certificate(
     assert not rejected.ok and "below the recomputed bound" in rejected.reason
 
 
-def test_coulomb_range_certifies_the_ur5e_default_box_start():
+def test_default_coulomb_certifies_the_ur5e_default_box_start():
     """The UR5e's whole default box over its first 0.1 s: with the Taylor-expanded sign the
-    remainder diverges at step 8 (the test above); with ``coulomb="range"`` the band is
-    finite, none of 458 sampled runs leaves it, and without the remainder they do."""
+    remainder diverges at step 8 (the test above); with the default ``coulomb="auto"``
+    (the sign bounded by its range where the tube's velocities spread wide, which they
+    do here) the band is finite, none of 458 sampled runs leaves it, and without the
+    remainder they do."""
     params = rmijax.load_robot("ur5e", **default_box("ur5e"))
     traj = _short(real_arm_case("ur5e").traj, 10)
-    bounds, cert = certified.certified_bounds(traj, params, coulomb="range")
-    assert cert.coulomb == "range"
+    bounds, cert = certified.certified_bounds(traj, params)
+    assert cert.coulomb == "auto"
+    keep = np.asarray(cert.keep)
+    assert keep.shape == (1, traj.n_steps, 6)
+    assert np.any(keep == 0) and np.any(keep == 1)  # both choices made on this run
     assert np.all(np.isfinite(np.asarray(bounds.upper - bounds.lower)))
     states, _ = rmijax.simulate(traj, params, _samples(params))
     states = np.asarray(states)
     assert _escape(bounds, states) <= TOL
-    bare, _ = certified.certified_bounds(traj, params, coulomb="range", remainder_scale=0.0)
+    bare, _ = certified.certified_bounds(traj, params, remainder_scale=0.0)
     assert _escape(bare, states) > 1e-9

@@ -1484,7 +1484,7 @@ def certified_bounds(
     solve: str | None = None,
     max_pieces: int = AUTO_MAX_PIECES,
     refine: float = AUTO_REFINE,
-    coulomb: str = "taylor",
+    coulomb: str = "auto",
 ) -> tuple[Bounds, Certificate]:
     """Bands proven to contain the output of every constant-parameter run, and their certificate.
 
@@ -1551,8 +1551,11 @@ def certified_bounds(
             spread wider than ``v_s``, the Taylor expansion's remainder diverges on the
             shipped arms' default box) or ``"auto"`` (per joint and step: the range
             where the tube's velocities spread wider than
-            :data:`COULOMB_RANGE_SPREAD`, the expansion elsewhere). No effect without
-            uncertain Coulomb ranges.
+            :data:`COULOMB_RANGE_SPREAD`, the expansion elsewhere; the default: on the
+            shipped arms' friction boxes over the first second of their move it was the
+            tightest of the three or equal to the tightest, and it alone certified all
+            three, ``docs/methods.md``). No effect without uncertain Coulomb ranges (the
+            certificate then records ``"taylor"``).
 
     Returns:
         ``(bounds, certificate)``: :class:`~rmijax.methods.base.Bounds` with
@@ -1644,8 +1647,10 @@ def certified_bounds(
                 f"{COULOMB_VELOCITY} rad/s of rest, and where the other ranges spread the "
                 "joint velocities wider than that its curvature makes the remainder diverge "
                 "(the shipped arms' default box within 0.1 s; docs/methods.md, 'Why the "
-                "default box diverges'): pass coulomb='range' (the sign bounded by its "
-                "range over the tube), or narrow the Coulomb or the mass and payload ranges."
+                "default box diverges'): leave coulomb at its default 'auto' or pass "
+                "coulomb='range' (the sign bounded by its range over the tube where it "
+                "spreads wide, or everywhere), or narrow the Coulomb or the mass and "
+                "payload ranges."
             )
         raise DivergedError.at(
             where,
