@@ -58,13 +58,13 @@ elimination preconditioned by the float inverse of ``M`` at each step's centre
 same jets (:mod:`rmijax.methods.chain_jets`; the
 chain's constants, joint-frame products and inertias about the joint origins, rounded
 once to float64). Other models are refused with a ``NotImplementedError``. On a chain
-the default box of :func:`rmijax.robots.loaders.default_box` is too wide: the
-remainder diverged within the first 0.1 s on every arm (the Panda's at step 8 with the
-preconditioned solve). Over the first second of ``rmijax
---robot``'s move a tenth of it is certified on all three arms, and its friction ranges
-alone on the UR5e and the Panda (the Panda's within 1.5x of the worst case at the
-median; cut in two along ``coulomb[joint4]``, the range :func:`split_ranking` puts first,
-its p90 too), not the iiwa14 (``docs/methods.md``, section 7).
+the default box of :func:`rmijax.robots.loaders.default_box` is wide: in one piece the
+remainder diverges within the first second on every arm (within 0.1 s with the
+Coulomb sign expanded, ``coulomb="taylor"``). Over the first second of ``rmijax
+--robot``'s move a tenth of it is certified on all three arms, its friction ranges alone
+on all three with the default ``coulomb="auto"`` (within 1.5x of the worst case at the
+median on both sensors), and the UR5e's whole box cut in two along the payload, loosely
+(1.6 / 5.7 of the worst case at the median; ``docs/methods.md``, section 7).
 """
 
 from __future__ import annotations
