@@ -69,6 +69,7 @@ from rmijax.methods.base import DivergedError  # noqa: E402
 from rmijax.methods.certified import (  # noqa: E402
     AUTO_MAX_PIECES,
     AUTO_REFINE,
+    COULOMB_MODES,
     _choice,
     _coulomb_choice,
     _solve_choice,
@@ -529,7 +530,7 @@ def main(argv=None):
     )
     parser.add_argument(
         "--coulomb",
-        choices=("taylor", "range", "auto"),
+        choices=COULOMB_MODES,
         default="auto",
         help="how a chain's Coulomb ranges enter the jets (certified_bounds' coulomb)",
     )

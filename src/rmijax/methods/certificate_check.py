@@ -515,9 +515,9 @@ def check_certificate(cert, traj, params, *, steps: int | None = None, pieces=No
     # only 0 (enclose the sign's range) and 1 (keep the Taylor sign) mean anything
     if cert.keep is not None:
         keep_all = np.asarray(cert.keep, np.float64)
-        if not np.all((keep_all == 0) | (keep_all == 1)):
-            bad = tuple(int(i) for i in np.argwhere((keep_all != 0) & (keep_all != 1))[0])
-            return CheckResult(False, 0, f"cert.keep{list(bad)} is not 0 or 1")
+        bad = np.argwhere((keep_all != 0) & (keep_all != 1))
+        if bad.size:
+            return CheckResult(False, 0, f"cert.keep{[int(i) for i in bad[0]]} is not 0 or 1")
     iv = _iv()
     backend = _MpBackend(iv)
     n = traj.n_joints
