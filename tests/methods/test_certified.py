@@ -322,7 +322,9 @@ def test_four_links_contain_every_corner_and_draws():
     ratio = np.asarray(bounds.width)[10:] / reached[10:]
     assert np.all(ratio >= 1.0 - 1e-9)
     assert np.median(ratio) <= 1.5
-    assert check_certificate(cert, traj, params, steps=2, pieces=[40]).ok  # ~70 s
+    # the checker over the first step of the middle piece (~60 s on a 2-core AMD host; two
+    # steps took 126 s: multi-step checks run in the chain and two-joint checker tests)
+    assert check_certificate(cert, traj, params, steps=1, pieces=[40]).ok
     # the masses are cut in 3 by default, so the uncut l2 moves the loop most per piece
     # (split_ranking: 73.6 against m3's 153.5 / 3)
     with pytest.raises(rmijax.DivergedError, match=r"'l2' in 2 parts"):

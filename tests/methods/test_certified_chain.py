@@ -225,21 +225,25 @@ def test_chain_remainder_switched_off_lets_samples_escape(ur5e_small):
 )
 def test_checker_verifies_a_chain_certificate(enclosure, propagate, steps):
     """The independent checker (mpmath jets of the chain: 4 s a step with interval jets,
-    24 s with affine ones) re-verifies the first steps of a UR5e certificate, rejects its
-    halved-remainder mutant and a centre that moves a certain parameter. The payload
-    alone is uncertain: the six mass scales (``lo == hi``) are constants of the jets for
-    both the certifier and the checker (``m = 13`` variables, not 19; the checker's cost
-    grows with the cube of it)."""
+    24-96 s with affine ones, by host) re-verifies the first steps of a UR5e certificate
+    and rejects a centre that moves a certain parameter; with interval jets it also rejects
+    the halved-remainder mutant (with affine jets that rejection costs a second full check,
+    96 s on a 2-core AMD host; the affine checker's rejection of a halved remainder is
+    tested on the two-joint URDF, ``test_checker_verifies_a_coulomb_range_certificate``).
+    The payload alone is uncertain: the six mass scales (``lo == hi``) are constants of
+    the jets for both the certifier and the checker (``m = 13`` variables, not 19; the
+    checker's cost grows with the cube of it)."""
     params = rmijax.load_robot("ur5e", payload=(0.0, 0.2))
     traj = _short(real_arm_case("ur5e").traj, steps + 1)
     options = dict(enclosure=enclosure, propagate=propagate)
     _, cert = certified.certified_bounds(traj, params, **options)
     result = check_certificate(cert, traj, params, steps=steps)
     assert result.ok, result.reason
-    _, mutant = certified.certified_bounds(traj, params, remainder_scale=0.5, **options)
-    rejected = check_certificate(mutant, traj, params, steps=steps)
-    assert not rejected.ok
-    assert "below the recomputed bound" in rejected.reason
+    if enclosure == "interval":
+        _, mutant = certified.certified_bounds(traj, params, remainder_scale=0.5, **options)
+        rejected = check_certificate(mutant, traj, params, steps=steps)
+        assert not rejected.ok
+        assert "below the recomputed bound" in rejected.reason
     # the certain mass scales are constants of the jets only at their value
     moved = dataclasses.replace(cert, center=cert.center.at[0, 0].add(1e-9))
     rejected = check_certificate(moved, traj, params, steps=steps)
