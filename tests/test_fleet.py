@@ -193,9 +193,10 @@ def test_certified_batch_on_a_loaded_chain_equals_the_single_run_call():
     ``certified_bounds`` per run, whether the certain parameters are folded (both boxes
     alike) or not (boxes differ in what is certain). A load with another parameter layout
     is refused; another load with the same layout is the same model and runs alike. The
-    Coulomb sign expanded (``coulomb="taylor"``): with the default ``"auto"`` this test took
-    534 s in CI (320 s alone expanded); ``"range"`` through the batch is the next test,
-    ``"auto"`` through the batch is not tested here."""
+    Coulomb sign expanded (``coulomb="taylor"``; with the default ``"auto"`` it took 534 s
+    in CI). Expanded it takes 268 s alone on a 2-core AMD host, 149 s of them the unfolded
+    batch (compile included), and 517 s in a CI run sharing the cores. ``"range"`` through
+    the batch is the next test, ``"auto"`` through the batch is not tested here."""
     from rmijax.apps.real_arm import real_arm_case
 
     traj = real_arm_case("ur5e").traj
