@@ -322,8 +322,9 @@ def test_four_links_contain_every_corner_and_draws():
     ratio = np.asarray(bounds.width)[10:] / reached[10:]
     assert np.all(ratio >= 1.0 - 1e-9)
     assert np.median(ratio) <= 1.5
-    # the checker over the first step of the middle piece (~60 s on a 2-core AMD host; two
-    # steps took 126 s: multi-step checks run in the chain and two-joint checker tests)
+    # the checker over the first step of the middle piece (two steps took 126 s of this
+    # test's 451 s on a 2-core AMD host; with one the test took 268 s there): multi-step
+    # checks run in the chain and two-joint checker tests
     assert check_certificate(cert, traj, params, steps=1, pieces=[40]).ok
     # the masses are cut in 3 by default, so the uncut l2 moves the loop most per piece
     # (split_ranking: 73.6 against m3's 153.5 / 3)
