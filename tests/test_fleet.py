@@ -187,43 +187,50 @@ def test_certified_batch_passes_the_enclosure_and_propagation_on():
     assert np.max(np.asarray(default.width) - np.asarray(batch.width)) > 0
 
 
-def test_certified_batch_on_a_loaded_chain_equals_the_single_run_call():
-    """Two UR5e runs (10 and 6 steps of the pick-and-place move; payload 0-0.2 kg, and
-    one box with the payload certain at 0.1 kg plus Coulomb friction): the batch equals
+def test_certified_batch_on_a_loaded_chain_equals_the_single_run_call(tmp_path):
+    """Two runs of the two-joint URDF arm carrying a payload (40 and 24 steps of
+    ``hold``/``sine``; payload 0-0.5 kg, and one box with the payload certain at 0.25 kg
+    plus Coulomb ranges 0-10 N m): with the default ``coulomb="auto"`` the batch equals
     ``certified_bounds`` per run, whether the certain parameters are folded (both boxes
-    alike) or not (boxes differ in what is certain). A load with another parameter layout
-    is refused; another load with the same layout is the same model and runs alike. The
-    Coulomb sign expanded (``coulomb="taylor"``; with the default ``"auto"`` it took 534 s
-    in CI). Expanded it takes 268 s alone on a 2-core AMD host, 149 s of them the unfolded
-    batch (compile included), and 517 s in a CI run sharing the cores. ``"range"`` through
-    the batch is the next test, ``"auto"`` through the batch is not tested here."""
-    from rmijax.apps.real_arm import real_arm_case
+    alike) or not (boxes differ in what is certain). On the Coulomb box ``"auto"`` takes
+    the sign's range on some steps and expands it on others, so both branches run through
+    the batch. A load with another parameter layout is refused; another load with the
+    same layout is the same model and runs alike. The chain model and the folding are
+    those of a 6-joint arm; on the UR5e this test took 517 s of a CI run (the 6-joint
+    batches' compiles), on two joints it checks the same equalities."""
+    from arm2_urdf import arm2_urdf
 
-    traj = real_arm_case("ur5e").traj
+    path = tmp_path / "arm2.urdf"
+    path.write_text(arm2_urdf())
+    traj = rmijax.trajectory(["hold", "sine"], duration=0.4)
     keys = ("t", "q_d", "qd_d", "qdd_d", "u_d", "x_n", "qdd_n")
     short = [
-        dataclasses.replace(traj, **{k: getattr(traj, k)[: s + 1] for k in keys}) for s in (10, 6)
+        dataclasses.replace(traj, **{k: getattr(traj, k)[: s + 1] for k in keys}) for s in (40, 24)
     ]
-    payload = rmijax.load_robot("ur5e", payload=(0.0, 0.2), friction=dict(coulomb=(0.0, 0.0)))
+    payload = rmijax.load_robot(path, payload=(0.0, 0.5), friction=dict(coulomb=(0.0, 0.0)))
     lo, hi = np.asarray(payload.lo), np.asarray(payload.hi)
-    friction = payload.with_box(lo=np.r_[lo[:6], 0.1, lo[7:]], hi=np.r_[hi[:6], 0.1, hi[7:] + 0.5])
+    assert lo.size == 5  # two mass scales (certain), the payload, two Coulomb levels
+    friction = payload.with_box(
+        lo=np.r_[lo[:2], 0.25, lo[3:]], hi=np.r_[hi[:2], 0.25, hi[3:] + 10.0]
+    )
     batches = []
     for robots in ([payload, payload], [payload, friction]):
-        batch = fleet.certified_batch(short, robots, coulomb="taylor")
+        batch = fleet.certified_batch(short, robots)
         batches.append(batch)
         for t, r, got in zip(short, robots, batch, strict=True):
-            want = rmijax.certified_bounds(t, r, coulomb="taylor")[0]
-            assert got.upper.shape == (t.n_steps + 1, 6, 2)
+            want, cert = rmijax.certified_bounds(t, r)
+            assert cert.coulomb == "auto"
+            assert got.upper.shape == (t.n_steps + 1, 2, 2)
             assert np.all(np.isfinite(got.upper - got.lower))
             np.testing.assert_allclose(got.upper, want.upper, rtol=1e-13, atol=1e-15)
             np.testing.assert_allclose(got.lower, want.lower, rtol=1e-13, atol=1e-15)
+    keep = np.asarray(cert.keep)  # the Coulomb box's run: both choices made
+    assert np.any(keep == 0) and np.any(keep == 1)
     with pytest.raises(ValueError, match=r"params\[1\].*layout.*with_box"):
-        fleet.certified_batch(short, [payload, rmijax.load_robot("ur5e", payload=(0.0, 0.2))])
+        fleet.certified_batch(short, [payload, rmijax.load_robot(path, payload=(0.0, 0.5))])
     # a second load with the same layout is the same model
-    again = rmijax.load_robot("ur5e", payload=(0.0, 0.2), friction=dict(coulomb=(0.0, 0.0)))
-    for got, want in zip(
-        fleet.certified_batch(short, [payload, again], coulomb="taylor"), batches[0], strict=True
-    ):
+    again = rmijax.load_robot(path, payload=(0.0, 0.5), friction=dict(coulomb=(0.0, 0.0)))
+    for got, want in zip(fleet.certified_batch(short, [payload, again]), batches[0], strict=True):
         np.testing.assert_array_equal(got.upper, want.upper)
 
 
