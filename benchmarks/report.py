@@ -387,6 +387,9 @@ CERTIFIED_FILES = (
     "certified_arms_range_cpu.json",
     "certified_ur5e_box_cpu.json",
     "certified_arms_auto_cpu.json",
+    "certified_ur5e_box_auto_cpu.json",
+    "certified_ur5e_box_auto4_cpu.json",
+    "certified_ur5e_box_auto8_cpu.json",
 )
 """Results of ``benchmarks/certified.py``, in the order the table lists them."""
 
