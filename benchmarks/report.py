@@ -394,6 +394,7 @@ CERTIFIED_FILES = (
     "certified_ur5e_move_cpu.json",
     "certified_panda_move_cpu.json",
     "certified_iiwa14_move_cpu.json",
+    "certified_arms_split_auto_cpu.json",
 )
 """Results of ``benchmarks/certified.py``, in the order the table lists them."""
 
