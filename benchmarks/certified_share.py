@@ -15,7 +15,10 @@ and sensor:
   interval, summed);
 - ``band``: the certified band (``poly_bound`` widened by each piece's remainder radius).
 
-and ``remainder_share``: ``2 r_k`` of the widest piece over the band's width. Read
+and ``remainder_share``: ``2 r_k`` of the widest piece over the band's width, and
+``remainder_seen``: the largest ``|x_k(th) - (x_c + S d + 1/2 Q[d, d])|`` over the
+sampled runs in a piece (a lower bound of the true remainder) over that piece's ``r_k``
+(per step from 0.5 s, joint and piece). Read
 ``poly_bound / poly_sampled`` as the loss of the polynomial's range bound, and ``band /
 poly_bound`` as what the remainder radius adds; more pieces shrink both, a tighter
 remainder bound only the second. Not a timing benchmark: ``seconds`` is the
@@ -83,9 +86,20 @@ def share_row(name, duration, splits, coulomb="auto", seed=0):
     center, lo, hi = (np.asarray(a) for a in (cert.center, cert.lo, cert.hi))
     pieces, p = center.shape
     rng = np.random.default_rng(seed)
-    poly_lo, poly_hi, bound_lo, bound_hi = [], [], [], []
+    poly_lo, poly_hi, bound_lo, bound_hi, seen = [], [], [], [], []
+    first = int(round(0.5 / traj.dt))
+    owner = np.argmax(np.all((samples >= lo[:, None]) & (samples <= hi[:, None]), -1), 0)
     for i in range(pieces):
         d_lo, d_hi = lo[i] - center[i], hi[i] - center[i]
+        mine = owner == i
+        if mine.any():  # the sampled runs' distance from this piece's polynomial
+            d = samples[mine] - center[i]
+            model = (
+                state[i][None]
+                + np.einsum("tnsp,kp->ktns", sens[i], d)
+                + 0.5 * np.einsum("tnsab,ka,kb->ktns", sens2[i], d, d)
+            )
+            seen.append(np.abs(runs[mine] - model).max(0)[first:] / radius[i][first:])
         u = rng.random((POINTS, p))
         u[: POINTS // 2] = np.round(u[: POINTS // 2])  # random corners
         d = d_lo + u * (d_hi - d_lo)
@@ -104,7 +118,6 @@ def share_row(name, duration, splits, coulomb="auto", seed=0):
         poly_bound=np.subtract(*_union(bound_lo, bound_hi)[::-1]),
         band=np.asarray(bounds.upper) - np.asarray(bounds.lower),
     )
-    first = int(round(0.5 / traj.dt))
     row = dict(
         case=name,
         duration=duration,
@@ -121,6 +134,7 @@ def share_row(name, duration, splits, coulomb="auto", seed=0):
             row[f"{sensor}_{key}"] = _median_p90(ratio)
         share = 2.0 * radius.max(0)[first:, :, s] / widths["band"][first:, :, s]
         row[f"{sensor}_remainder_share"] = _median_p90(share)
+        row[f"{sensor}_remainder_seen"] = _median_p90(np.stack(seen)[..., s])
     return row
 
 
