@@ -226,6 +226,21 @@ def run_case(name, duration, draws, every, splits, options=None, warm=True):
     return row
 
 
+def _taylor_values(cert, piece, d):
+    """The second-order model ``x_c + S d + 1/2 Q[d, d]`` of ``cert``'s piece ``piece`` at
+    the offsets ``d`` (S, p) from its centre: (S, T+1, n, 2)."""
+    return (
+        np.asarray(cert.state)[piece][None]
+        + np.einsum("tnsp,Sp->Stns", np.asarray(cert.sens)[piece], d)
+        + 0.5 * np.einsum("tnspq,Sp,Sq->Stns", np.asarray(cert.sens2)[piece], d, d)
+    )
+
+
+def _split_items(items):
+    """``--split NAME=PARTS ...`` as ``{name: parts}``; ``ValueError`` on a bad item."""
+    return {k: int(v) for k, v in (item.split("=") for item in items)}
+
+
 def run_remainder(duration=1.0, splits=2, draws=200):
     """How tight the remainder bound is: the pendulum fixture of the tests (``sine``).
 
@@ -249,12 +264,7 @@ def run_remainder(duration=1.0, splits=2, draws=200):
         lo, hi = np.asarray(cert.lo)[piece], np.asarray(cert.hi)[piece]
         inside = np.all((samples >= lo) & (samples <= hi), axis=1)
         d = samples[inside] - np.asarray(cert.center)[piece]
-        poly = (
-            np.asarray(cert.state)[piece][None]
-            + np.einsum("tnsp,Sp->Stns", np.asarray(cert.sens)[piece], d)
-            + 0.5 * np.einsum("tnspq,Sp,Sq->Stns", np.asarray(cert.sens2)[piece], d, d)
-        )
-        remainder = states[inside] - poly
+        remainder = states[inside] - _taylor_values(cert, piece, d)
         xi = remainder[:, 1:] - np.einsum("nij,Stnj->Stni", a, remainder[:, :-1])
         reached_r[piece] = np.abs(remainder).max(0)
         reached_w[piece] = np.abs(xi).max(0)
@@ -554,7 +564,7 @@ def main(argv=None):
         if args.splits is not None:
             parser.error("give --splits or --split, not both")
         try:
-            args.splits = {k: int(v) for k, v in (item.split("=") for item in args.split)}
+            args.splits = _split_items(args.split)
         except ValueError:
             parser.error(f"--split takes NAME=PARTS items, got {args.split}")
     if args.checker:

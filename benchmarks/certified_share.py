@@ -46,7 +46,7 @@ sys.path.insert(0, str(pathlib.Path(__file__).parent))
 
 import jax.numpy as jnp  # noqa: E402
 from _common import run_meta  # noqa: E402
-from certified import CASES, _samples, _trajectory  # noqa: E402
+from certified import CASES, _samples, _split_items, _taylor_values, _trajectory  # noqa: E402
 
 import rmijax  # noqa: E402
 from rmijax.methods.certified import _poly_range, certified_bounds  # noqa: E402
@@ -54,9 +54,9 @@ from rmijax.methods.certified import _poly_range, certified_bounds  # noqa: E402
 POINTS = 3000  # polynomial evaluations per piece: half random corners, half uniform draws
 
 
-def _union(lows, highs):
-    """Hull over the leading (piece) axis."""
-    return np.min(lows, axis=0), np.max(highs, axis=0)
+def _hull_width(lows, highs):
+    """Width of the hull over the leading (piece) axis."""
+    return np.max(highs, axis=0) - np.min(lows, axis=0)
 
 
 def _median_p90(values):
@@ -91,34 +91,23 @@ def share_row(name, duration, splits, coulomb="auto", seed=0):
     rng = np.random.default_rng(seed)
     poly_lo, poly_hi, bound_lo, bound_hi, seen = [], [], [], [], []
     first = int(round(0.5 / traj.dt))
-    owner = np.argmax(np.all((samples >= lo[:, None]) & (samples <= hi[:, None]), -1), 0)
     for i in range(pieces):
         d_lo, d_hi = lo[i] - center[i], hi[i] - center[i]
-        mine = owner == i
-        if mine.any():  # the sampled runs' distance from this piece's polynomial
-            d = samples[mine] - center[i]
-            model = (
-                state[i][None]
-                + np.einsum("tnsp,kp->ktns", sens[i], d)
-                + 0.5 * np.einsum("tnsab,ka,kb->ktns", sens2[i], d, d)
-            )
-            seen.append(np.abs(runs[mine] - model).max(0)[first:] / radius[i][first:])
+        inside = np.all((samples >= lo[i]) & (samples <= hi[i]), axis=1)
+        if inside.any():  # the sampled runs' distance from this piece's polynomial
+            model = _taylor_values(cert, i, samples[inside] - center[i])
+            seen.append(np.abs(runs[inside] - model).max(0)[first:] / radius[i][first:])
         u = rng.random((POINTS, p))
         u[: POINTS // 2] = np.round(u[: POINTS // 2])  # random corners
-        d = d_lo + u * (d_hi - d_lo)
-        values = (
-            state[i][None]
-            + np.einsum("tnsp,kp->ktns", sens[i], d)
-            + 0.5 * np.einsum("tnsab,ka,kb->ktns", sens2[i], d, d)
-        )
+        values = _taylor_values(cert, i, d_lo + u * (d_hi - d_lo))
         poly_lo.append(values.min(0))
         poly_hi.append(values.max(0))
         low, high = _poly_range(*(jnp.asarray(a) for a in (sens[i], sens2[i], d_lo, d_hi)))
         bound_lo.append(state[i] + np.asarray(low))
         bound_hi.append(state[i] + np.asarray(high))
     widths = dict(
-        poly_sampled=np.subtract(*_union(poly_lo, poly_hi)[::-1]),
-        poly_bound=np.subtract(*_union(bound_lo, bound_hi)[::-1]),
+        poly_sampled=_hull_width(poly_lo, poly_hi),
+        poly_bound=_hull_width(bound_lo, bound_hi),
         band=np.asarray(bounds.upper) - np.asarray(bounds.lower),
     )
     row = dict(
@@ -155,7 +144,7 @@ def main(argv=None):
     parser.add_argument("--json", default=None, help="write the results to this JSON file")
     args = parser.parse_args(argv)
     try:
-        splits = {k: int(v) for k, v in (item.split("=") for item in args.split)} or None
+        splits = _split_items(args.split) or None
     except ValueError:
         parser.error(f"--split takes NAME=PARTS items, got {args.split}")
     rows = []
