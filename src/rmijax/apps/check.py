@@ -125,9 +125,11 @@ def _validate(args):
 
     if args.method == "certified" and not isinstance(params.model.structure, PlanarPointMass):
         raise _Refused(
-            f"--method certified: {args.robot}'s default box is not certified (the remainder "
-            "diverges within 0.1 s, docs/methods.md section 7); call "
-            "rmijax.certified_bounds with a smaller box"
+            f"--method certified: {args.robot}'s default box is not certified in one piece "
+            "(the remainder diverges within the first second); call "
+            "rmijax.certified_bounds with a smaller box or with splits= (the UR5e's whole "
+            "box is certified over the first second in 2 to 32 pieces; docs/methods.md "
+            "section 7, rmijax.methods.certified.split_ranking)"
         )
     from rmijax import _checks
 
