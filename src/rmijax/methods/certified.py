@@ -64,7 +64,8 @@ Coulomb sign expanded, ``coulomb="taylor"``). Over the first second of ``rmijax
 --robot``'s move a tenth of it is certified on all three arms, its friction ranges alone
 on all three with the default ``coulomb="auto"`` (within 1.5x of the worst case at the
 median on both sensors), and the UR5e's whole box cut in two along the payload, loosely
-(1.6 / 5.7 of the worst case at the median; ``docs/methods.md``, section 7).
+(1.6 / 5.7 of the worst case at the median), in 32 pieces within 1.5x at the median (1.08 /
+1.46; ``docs/methods.md``, section 7).
 """
 
 from __future__ import annotations
