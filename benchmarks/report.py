@@ -395,6 +395,7 @@ CERTIFIED_FILES = (
     "certified_ur5e_box_auto16w2_cpu.json",
     "certified_panda_box_auto_cpu.json",
     "certified_panda_box_auto4l6_cpu.json",
+    "certified_panda_box_auto4l6j4_cpu.json",
     "certified_ur5e_move_cpu.json",
     "certified_panda_move_cpu.json",
     "certified_iiwa14_move_cpu.json",
