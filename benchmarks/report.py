@@ -393,6 +393,7 @@ CERTIFIED_FILES = (
     "certified_ur5e_box_auto4w2_cpu.json",
     "certified_ur5e_box_auto8w2_cpu.json",
     "certified_ur5e_box_auto16w2_cpu.json",
+    "certified_ur5e_box_auto4_2s_cpu.json",
     "certified_panda_box_auto_cpu.json",
     "certified_panda_box_auto4l6_cpu.json",
     "certified_panda_box_auto4l6j4_cpu.json",
