@@ -49,9 +49,24 @@ from _common import run_meta  # noqa: E402
 from certified import CASES, _samples, _split_items, _taylor_values, _trajectory  # noqa: E402
 
 import rmijax  # noqa: E402
-from rmijax.methods.certified import _poly_range, certified_bounds  # noqa: E402
+from rmijax.control import closed_loop_step, coupled_perturbation  # noqa: E402
+from rmijax.methods.certified import _certify_box, _poly_range, certified_bounds  # noqa: E402
 
 POINTS = 3000  # polynomial evaluations per piece: half random corners, half uniform draws
+
+ARMS = ("ur5e", "panda", "iiwa14")
+
+INPUT_SAMPLES = 200  # --inputs: random corners of each piece, and as many uniform draws
+
+BLOCK_GROUPS = {
+    "first_order": [0],
+    "parameter_parameter": [1, 2, 4, 5],
+    "parameter_remainder": [3, 6, 7, 8],
+    "remainder_remainder": [9],
+}
+"""``--inputs``: ``certified``'s ``w_blocks`` (``linear``, then the quadratic term's
+blocks ``mm, ml, mx, lm, ll, lx, xm, xl, xx``; on a chain ``m`` the mass scales, ``l``
+the payload and friction, ``x`` the remainder) grouped by what they couple."""
 
 
 def _hull_width(lows, highs):
@@ -130,6 +145,112 @@ def share_row(name, duration, splits, coulomb="auto", seed=0):
     return row
 
 
+def _closed_loop_jacobian(traj, params):
+    """``A_c(k)`` (T, 2n, 2n): the state Jacobian of one explicit-Euler step of the closed
+    loop at ``(x, th)`` (jitted, vmapped over steps; rows ``(joint, q/qd)``)."""
+    model, nominal, kp, kd, dt = params.model, params.nominal, traj.kp, traj.kd, traj.dt
+
+    def step(x, th, u):
+        gv = coupled_perturbation(model, th, nominal, x[:, 0], x[:, 1], u, kp, kd)
+        return jnp.stack(closed_loop_step(x[:, 0], x[:, 1], u, gv, kp, kd, dt), axis=1)
+
+    jac = jax.jit(jax.vmap(jax.jacfwd(step, 0), (0, None, 0)))
+    n = traj.n_joints
+    return lambda xc, th: np.asarray(jac(jnp.asarray(xc), jnp.asarray(th), traj.u_d[:-1])).reshape(
+        -1, 2 * n, 2 * n
+    )
+
+
+def inputs_row(name, duration, splits, coulomb="auto", seed=0):
+    """Where the remainder radius loses against the true remainder, on a loaded arm.
+
+    The remainder obeys ``R_(k+1) = A_c(k) R_k + xi_k`` (``A_c`` the piece centre's
+    closed-loop Jacobian); the certificate bounds each step's input ``|xi_k| <= w_k`` and
+    carries each step's bound as its own independent generators (their signs free from
+    step to step). Sampled per piece (``INPUT_SAMPLES`` random corners and as many uniform
+    draws, runs of ``simulate``): the true remainder ``R_k(th)`` (its largest size a
+    lower bound of what ``r_k`` must cover), the true inputs ``xi_k(th)``, and ``rho_k``:
+    the largest sampled input of every step, ``max_th |xi_j(th)|``, carried the
+    certificate's way (``A_c`` products, independent generators per step). Then
+    ``r_k / true`` splits into ``rho_k / true`` (what independent per-step inputs cost
+    when each is the sampled truth) times ``r_k / rho_k`` (what the enclosure of the
+    inputs costs, its feedback through the tube included), and ``w_k / max |xi_k|`` (the
+    tachometer rows: the velocity row carries the dynamics) is that enclosure step by
+    step. Also the share of ``w_k`` by block (:data:`BLOCK_GROUPS`; the rest is the
+    carried propagation's bounded terms and the coefficients' rounding). Median (p90)
+    over steps from 0.5 s, joints and pieces. Chains only (their default pair:
+    affine/carried, preconditioned solve).
+    """
+    build, paths = CASES[name]
+    params = build()
+    traj = _trajectory(paths, duration)
+    n, dt = traj.n_joints, traj.dt
+    zeros = jnp.zeros((n, 2))
+    start = time.perf_counter()
+    options = dict(enclosure="affine", propagate="carried", solve="preconditioned")
+    centers, los, his, pieces, *_ = _certify_box(
+        traj, params, zeros, zeros, splits, diagnostics=True, coulomb=coulomb, **options
+    )
+    pieces = {key: np.asarray(value) for key, value in pieces.items()}
+    seconds = round(time.perf_counter() - start, 1)
+    if not np.all(np.isfinite(pieces["remainder"])):
+        raise SystemExit(f"{name}: the remainder diverged; --inputs needs a finite one")
+    centers, los, his = (np.asarray(a) for a in (centers, los, his))
+    jacobian = _closed_loop_jacobian(traj, params)
+    rng = np.random.default_rng(seed)
+    first = int(round(0.5 / dt))
+    parts = {key: [] for key in ("cert", "indep", "enclosure", "w_over_seen")}
+    shares = {key: [] for key in list(BLOCK_GROUPS) + ["rest"]}
+    for i in range(centers.shape[0]):
+        lo, hi = los[i], his[i]
+        bits = rng.integers(0, 2, size=(INPUT_SAMPLES, lo.size)).astype(bool)
+        draws = lo + (hi - lo) * rng.uniform(size=(INPUT_SAMPLES, lo.size))
+        ths = np.concatenate([np.where(bits, hi, lo), draws])
+        runs = np.asarray(rmijax.simulate(traj, params, ths)[0])  # (S, T+1, n, 2)
+        d = ths - centers[i]
+        model = (
+            pieces["state"][i][None]
+            + np.einsum("tnsp,Sp->Stns", pieces["sens"][i], d)
+            + 0.5 * np.einsum("tnspq,Sp,Sq->Stns", pieces["sens2"][i], d, d)
+        )
+        rem = (runs - model).reshape(len(ths), -1, 2 * n)  # (S, T+1, 2n)
+        a_c = jacobian(pieces["state"][i][:-1], centers[i])  # (T, 2n, 2n)
+        xi = rem[:, 1:] - np.einsum("tij,stj->sti", a_c, rem[:, :-1])
+        seen_w, true = np.abs(xi).max(0), np.abs(rem).max(0)  # (T, 2n), (T+1, 2n)
+        gens, rho = np.zeros((2 * n, 0)), np.zeros_like(true)
+        for k in range(a_c.shape[0]):  # the sampled inputs carried as the certificate does
+            gens = np.concatenate([a_c[k] @ gens, np.diag(seen_w[k])], axis=1)
+            rho[k + 1] = np.abs(gens).sum(1)
+        radius = pieces["remainder"][i].reshape(-1, 2 * n)
+        w = pieces["injected"][i].reshape(-1, 2 * n)
+        tiny = 1e-300
+        parts["cert"].append((radius / np.maximum(true, tiny))[first:])
+        parts["indep"].append((rho / np.maximum(true, tiny))[first:])
+        parts["enclosure"].append((radius / np.maximum(rho, tiny))[first:])
+        parts["w_over_seen"].append((w / np.maximum(seen_w, tiny))[first - 1 :])
+        total = pieces["injected"][i][first - 1 :, :, 1] / dt  # (T', n): w_k, rounding in
+        blocks = pieces["w_blocks"][i][first - 1 :] / total[..., None]
+        for key, cols in BLOCK_GROUPS.items():
+            shares[key].append(blocks[..., cols].sum(-1))
+        shares["rest"].append(1.0 - blocks.sum(-1))
+    row = dict(
+        case=name,
+        duration=duration,
+        splits=splits,
+        coulomb=coulomb,
+        pieces=int(centers.shape[0]),
+        samples_per_piece=2 * INPUT_SAMPLES,
+        seconds=seconds,
+    )
+    for s, sensor in ((0, "encoder"), (1, "tachometer")):
+        for key in ("cert", "indep", "enclosure"):
+            values = np.stack(parts[key])[..., s::2]
+            row[f"{sensor}_{key}"] = _median_p90(values.ravel())
+    row["tachometer_w_over_seen"] = _median_p90(np.stack(parts["w_over_seen"])[..., 1::2].ravel())
+    row["w_share"] = {key: _median_p90(np.stack(v).ravel()) for key, v in shares.items()}
+    return row
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", nargs="+", default=["ur5e_box"], choices=list(CASES))
@@ -142,14 +263,23 @@ def main(argv=None):
         help="parts per named parameter, e.g. payload_mass=4 (default: the method's)",
     )
     parser.add_argument("--json", default=None, help="write the results to this JSON file")
+    parser.add_argument(
+        "--inputs",
+        action="store_true",
+        help="instead: split the remainder's looseness into its inputs' enclosure and "
+        "their independent carrying (inputs_row; loaded arms only)",
+    )
     args = parser.parse_args(argv)
+    if args.inputs and any(name.split("_")[0] not in ARMS for name in args.cases):
+        parser.error("--inputs takes the loaded arms' cases only (ur5e_*, panda_*, iiwa14_*)")
     try:
         splits = _split_items(args.split) or None
     except ValueError:
         parser.error(f"--split takes NAME=PARTS items, got {args.split}")
     rows = []
     for name in args.cases:
-        rows.append(share_row(name, args.duration, splits))
+        row = inputs_row if args.inputs else share_row
+        rows.append(row(name, args.duration, splits))
         print(json.dumps(rows[-1]), flush=True)
         if args.json:
             meta = run_meta("benchmarks/certified_share.py", dtype="float64")
