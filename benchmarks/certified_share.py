@@ -28,6 +28,14 @@ Run from the repository root (about 10 minutes on 2 cores for the UR5e's box in 
 
     python benchmarks/certified_share.py --cases ur5e_box --split payload_mass=4 \\
         --json benchmarks/results/certified_share_cpu.json
+
+With ``--inputs`` (loaded arms only; :func:`inputs_row`) it asks instead where the
+remainder radius loses against the true remainder: in the enclosure of each step's input,
+or in carrying the steps' inputs as independent generators (about 10 minutes on 2 cores
+for the UR5e's box in 4):
+
+    python benchmarks/certified_share.py --inputs --cases ur5e_box --split payload_mass=4 \\
+        --json benchmarks/results/certified_inputs_cpu.json
 """
 
 from __future__ import annotations

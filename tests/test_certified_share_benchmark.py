@@ -23,3 +23,26 @@ def test_widths_are_nested_and_the_remainder_holds_the_samples():
         # inside the radius (a run outside would exceed 1), and not vacuous: the runs
         # do move away from the polynomial
         assert 0.0 < seen_median <= seen_p90 <= 1.0
+
+
+def test_inputs_row_splits_the_looseness_and_the_radius_holds_every_sampled_remainder(
+    monkeypatch,
+):
+    monkeypatch.setattr(share, "INPUT_SAMPLES", 40)
+    row = share.inputs_row("ur5e_friction", 0.55, None)
+    assert row["pieces"] == 1 and row["samples_per_piece"] == 80
+    for sensor in ("encoder", "tachometer"):
+        # every sampled remainder lies within r_k (entrywise), so every percentile is >= 1
+        median, p90 = row[f"{sensor}_cert"]
+        assert 1.0 <= median <= p90 < 1e3, (sensor, row)
+        for key in ("indep", "enclosure"):
+            low, high = row[f"{sensor}_{key}"]
+            assert 0.0 < low <= high < 1e3, (sensor, key, row)
+    shares = row["w_share"]
+    assert set(shares) == {*share.BLOCK_GROUPS, "rest"}
+    for key, (median, p90) in shares.items():
+        # parts of w_k: within [0, 1] (the rest up to the rounding of the division)
+        assert -1e-9 <= median <= p90 <= 1.0 + 1e-9, (key, row)
+    # on a friction box w_k comes from the parameters' block (their effect through the
+    # state they move, e.g. the Coulomb sign's curvature), not from the remainder's
+    assert shares["parameter_parameter"][0] > 0.5, row
