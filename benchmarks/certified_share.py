@@ -76,6 +76,13 @@ BLOCK_GROUPS = {
 blocks ``mm, ml, mx, lm, ll, lx, xm, xl, xx``; on a chain ``m`` the mass scales, ``l``
 the payload and friction, ``x`` the remainder) grouped by what they couple."""
 
+REST_PARTS = ("carried_bounded", "coefficient_radius", "rest")
+"""``--inputs``: the rest of ``w_k`` (``certified``'s ``w_rest``): the carried propagation's
+bounded terms (the centre Hessian's remainder-remainder block, the parameters' products
+with the carried remainder), the stored coefficients' enclosure radius over ``dt`` (their
+rounding, and with ``coulomb="auto"`` the Coulomb sign's range where the tube's
+velocities spread wide), and what is left (the inflation factors: about 0)."""
+
 
 def _hull_width(lows, highs):
     """Width of the hull over the leading (piece) axis."""
@@ -184,8 +191,8 @@ def inputs_row(name, duration, splits, coulomb="auto", seed=0):
     when each is the sampled truth) times ``r_k / rho_k`` (what the enclosure of the
     inputs costs, its feedback through the tube included), and ``w_k / max |xi_k|`` (the
     tachometer rows: the velocity row carries the dynamics) is that enclosure step by
-    step. Also the share of ``w_k`` by block (:data:`BLOCK_GROUPS`; the rest is the
-    carried propagation's bounded terms and the coefficients' rounding). Median (p90)
+    step. Also the share of ``w_k`` by block (:data:`BLOCK_GROUPS`) and of the rest of
+    it (:data:`REST_PARTS`). Median (p90)
     over steps from 0.5 s, joints and pieces. Chains only (their default pair:
     affine/carried, preconditioned solve).
     """
@@ -208,7 +215,7 @@ def inputs_row(name, duration, splits, coulomb="auto", seed=0):
     rng = np.random.default_rng(seed)
     first = int(round(0.5 / dt))
     parts = {key: [] for key in ("cert", "indep", "enclosure", "w_over_seen")}
-    shares = {key: [] for key in list(BLOCK_GROUPS) + ["rest"]}
+    shares = {key: [] for key in list(BLOCK_GROUPS) + list(REST_PARTS)}
     for i in range(centers.shape[0]):
         lo, hi = los[i], his[i]
         bits = rng.integers(0, 2, size=(INPUT_SAMPLES, lo.size)).astype(bool)
@@ -240,7 +247,10 @@ def inputs_row(name, duration, splits, coulomb="auto", seed=0):
         blocks = pieces["w_blocks"][i][first - 1 :] / total[..., None]
         for key, cols in BLOCK_GROUPS.items():
             shares[key].append(blocks[..., cols].sum(-1))
-        shares["rest"].append(1.0 - blocks.sum(-1))
+        rest = pieces["w_rest"][i][first - 1 :] / total[..., None]  # (T', n, 2)
+        shares["carried_bounded"].append(rest[..., 0])
+        shares["coefficient_radius"].append(rest[..., 1])
+        shares["rest"].append(1.0 - blocks.sum(-1) - rest.sum(-1))
     row = dict(
         case=name,
         duration=duration,

@@ -39,10 +39,12 @@ def test_inputs_row_splits_the_looseness_and_the_radius_holds_every_sampled_rema
             low, high = row[f"{sensor}_{key}"]
             assert 0.0 < low <= high < 1e3, (sensor, key, row)
     shares = row["w_share"]
-    assert set(shares) == {*share.BLOCK_GROUPS, "rest"}
+    assert set(shares) == {*share.BLOCK_GROUPS, *share.REST_PARTS}
     for key, (median, p90) in shares.items():
-        # parts of w_k: within [0, 1] (the rest up to the rounding of the division)
+        # parts of w_k: within [0, 1] (up to the rounding of the division)
         assert -1e-9 <= median <= p90 <= 1.0 + 1e-9, (key, row)
+    # the parts add up to w_k: what is left is the inflation factors' few ulps
+    assert abs(shares["rest"][0]) < 1e-9 and abs(shares["rest"][1]) < 1e-9, row
     # on a friction box w_k comes from the parameters' block (their effect through the
     # state they move, e.g. the Coulomb sign's curvature), not from the remainder's
     assert shares["parameter_parameter"][0] > 0.5, row

@@ -761,7 +761,10 @@ def _certify_piece(
     others. With ``matrix_fn`` (static, :func:`solve_matrix`) the solve is preconditioned
     by its inverse at each step's centre. With ``diagnostics`` (static) the output also
     holds ``w_blocks`` (T, n, 10):
-    ``w_k`` split by source (see :func:`_w_blocks`). Once the remainder radius is not
+    ``w_k`` split by source (see :func:`_w_blocks`), and ``w_rest`` (T, n, 2): the rest of
+    ``w_k``'s velocity row, the carried propagation's bounded terms (``extra`` of
+    :func:`_carried_terms`) and the stored coefficients' enclosure radius over ``dt`` (their
+    rounding and, with Coulomb ranges, the sign's range). Once the remainder radius is not
     finite the remaining steps are skipped (their outputs set to ``inf``); under a
     ``vmap`` named ``axis_name`` only once every piece's is not finite. With
     ``coulomb="range"`` (static) the Coulomb errors move an enclosure of their sign over
@@ -805,7 +808,7 @@ def _certify_piece(
         as it would be with ``live_step``): skip the work."""
         xc, sens, sens2, buf, tail_max, rhat, gens, gens_d, k = carry
         rhat = jnp.full_like(rhat, jnp.inf)
-        blocks = jnp.full((n, 10), jnp.inf, dtype) if diagnostics else None
+        blocks = jnp.full((n, 12), jnp.inf, dtype) if diagnostics else None
         ys = tuple(jnp.full_like(a, jnp.inf) for a in (xc, sens, sens2, rhat, rhat))
         keep = jnp.ones((n,), dtype) if coulomb == "auto" else None
         return (xc, sens, sens2, buf, tail_max, rhat, gens, gens_d, k + 1), (*ys, blocks, keep)
@@ -897,7 +900,11 @@ def _certify_piece(
             linear = g1.mag()[:, p:] * v_hat[None, p:]
             extra = 0.0
         w = _sum_up(linear, -1, m) + _sum_up(quadratic, (-2, -1), m * m) + extra
-        blocks = _w_blocks(linear, quadratic, n, p) if diagnostics else None
+        if diagnostics:  # w_blocks, then w_rest (the bounded terms, the radius over dt)
+            rest = [jnp.broadcast_to(extra, (n,)), rounding[:, 1] / dt]
+            blocks = jnp.concatenate([_w_blocks(linear, quadratic, n, p), jnp.stack(rest, -1)], -1)
+        else:
+            blocks = None
         w = w * (1.0 + 4 * _EPS) + _TINY
         injected = rounding.at[:, 1].add(up(dt * w) * scale)
         injected = injected * (1.0 + 4 * _EPS) + _TINY
@@ -949,7 +956,8 @@ def _certify_piece(
         upper=band.hi,
     )
     out |= dict(keep=keeps) if coulomb == "auto" else {}
-    return out | (dict(w_blocks=blocks) if diagnostics else {})
+    diag = dict(w_blocks=blocks[..., :10], w_rest=blocks[..., 10:]) if diagnostics else {}
+    return out | diag
 
 
 def _sign_range(xc, sens, sens2, d_lo, d_hi, rhat, auto=False):
@@ -1405,7 +1413,7 @@ def _certify_box(
     """Split the box and certify every piece: ``(centers, los, his, pieces, kernel, tail)``.
 
     Inputs as checked by :func:`certified_bounds` (noise bounds (n, 2) float64);
-    ``pieces`` holds each piece's arrays with a leading (P,) axis, and ``w_blocks``
+    ``pieces`` holds each piece's arrays with a leading (P,) axis, and ``w_blocks``, ``w_rest``
     with ``diagnostics``.
     """
     noisy = bool(np.any(np.asarray(noise_lo) != 0) or np.any(np.asarray(noise_hi) != 0))
