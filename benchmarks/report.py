@@ -401,6 +401,10 @@ CERTIFIED_FILES = (
     "certified_panda_move_cpu.json",
     "certified_iiwa14_move_cpu.json",
     "certified_arms_split_auto_cpu.json",
+    "certified_ur5e_box_auto4_seg6_cpu.json",
+    "certified_ur5e_box_auto4_2s_seg6_cpu.json",
+    "certified_panda_box_auto_seg6_cpu.json",
+    "certified_iiwa14_box_auto_seg6_cpu.json",
 )
 """Results of ``benchmarks/certified.py``, in the order the table lists them."""
 
@@ -424,7 +428,9 @@ def certified_table():
                 cuts = ", ".join(f"`{k}` in {v}" for k, v in splits.items())
             case = f"`{r['case']}`" + (f" ({cuts})" if cuts else "")
             pair = f"{r.get('enclosure', default[0])} / {r.get('propagate', default[1])}"
-            pair += f", {r['segments']} segment" if r.get("segments", 3) != 3 else ""
+            segments = r.get("segments", 3)
+            plural = "s" if segments != 1 else ""
+            pair += f", {segments} segment{plural}" if segments != 3 else ""
             # rows before the solve option (stop 32) solved by articulated pivots
             pair += ", preconditioned" if r.get("solve") == "preconditioned" else ""
             # Coulomb ranges bounded by the sign's range (stop 35 on): coulomb="range", or
