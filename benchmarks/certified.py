@@ -207,6 +207,7 @@ def run_case(name, duration, draws, every, splits, options=None, warm=True):
         propagate=cert.propagate,
         solve=cert.solve,
         **(dict(coulomb=cert.coulomb) if cert.coulomb != "taylor" else {}),
+        **({"coulomb_spread": options["coulomb_spread"]} if "coulomb_spread" in options else {}),
         segments=int(cert.segments),
         steps=traj.n_steps,
         seconds=round(seconds, 2),
@@ -545,6 +546,13 @@ def main(argv=None):
         help="how a chain's Coulomb ranges enter the jets (certified_bounds' coulomb)",
     )
     parser.add_argument(
+        "--coulomb-spread",
+        type=float,
+        help="with --coulomb auto: the tube's velocity spread (rad/s) above which a "
+        "joint's sign is bounded by its range (certified_bounds' coulomb_spread; "
+        "default its own, 0.1)",
+    )
+    parser.add_argument(
         "--cold-only", action="store_true", help="time one call only (no warm second call)"
     )
     parser.add_argument("--json", help="write the results to this JSON file")
@@ -607,6 +615,8 @@ def main(argv=None):
                 solve=args.solve,
             )
             options["coulomb"] = args.coulomb
+            if args.coulomb_spread is not None:
+                options["coulomb_spread"] = args.coulomb_spread
             if args.max_pieces is not None:
                 options["max_pieces"] = args.max_pieces
             if args.refine is not None:
@@ -638,6 +648,8 @@ def main(argv=None):
             # the field are taylor (the default before stop 36)
             coulomb = _coulomb_choice(args.coulomb, params)
             row |= dict(coulomb=coulomb) if coulomb != "taylor" else {}
+            if "coulomb_spread" in options:
+                row["coulomb_spread"] = options["coulomb_spread"]
             rows.append(row)
             print(f"{name:26} diverged after {row['seconds']} s: {err}", flush=True)
             if args.json:

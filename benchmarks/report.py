@@ -438,6 +438,8 @@ def certified_table():
             pair += {"range": ", Coulomb by range", "auto": ", Coulomb auto"}.get(
                 r.get("coulomb"), ""
             )
+            spread = r.get("coulomb_spread")  # stop 44 on; the default 0.1 rad/s before
+            pair += f" above {spread:g} rad/s" if spread is not None else ""
             if "diverged" in r:
                 step = r["diverged"].split("(step ")[1].split(",")[0]
                 rows.append(

@@ -426,7 +426,7 @@ def test_checker_verifies_a_coulomb_range_certificate(
     rejected = check_certificate(halved, short, params, steps=5)
     assert not rejected.ok and "below the recomputed bound" in rejected.reason
 
-    def centre_only(xc, sens, sens2, d_lo, d_hi, rhat, auto=False):
+    def centre_only(xc, sens, sens2, d_lo, d_hi, rhat, auto=False, spread=None):
         sign = jnp.tanh(xc[:, 1] * (1.0 / rmijax.robots.spatial.COULOMB_VELOCITY))
         return sign, sign, jnp.zeros_like(sign) if auto else None
 
@@ -438,6 +438,31 @@ def test_checker_verifies_a_coulomb_range_certificate(
         certified._certify.clear_cache()
     rejected = check_certificate(mutant, short, params, steps=5)
     assert not rejected.ok and "below the recomputed bound" in rejected.reason
+
+
+def test_coulomb_spread_moves_the_choice_and_stays_sound(arm2_coulomb):
+    """``coulomb_spread`` sets where ``"auto"`` takes the sign's range: a wider threshold
+    keeps the expansion at more steps (the choice moves), and the band still holds every
+    sampled run (216) and passes the checker on its first steps; the argument is checked."""
+    traj, params, runs = arm2_coulomb
+    _, default = runs["auto"]
+    bounds, cert = certified.certified_bounds(traj, params, coulomb="auto", coulomb_spread=1.0)
+    kept, kept_default = np.asarray(cert.keep).mean(), np.asarray(default.keep).mean()
+    assert kept > kept_default, (kept, kept_default)
+    states, _ = rmijax.simulate(traj, params, _samples(params, corners=0, draws=200))
+    lo, hi = np.asarray(params.lo), np.asarray(params.hi)
+    bits = np.array(np.meshgrid(*[[0, 1]] * lo.size, indexing="ij")).reshape(lo.size, -1).T
+    corners, _ = rmijax.simulate(traj, params, np.where(bits == 1, hi, lo))
+    states = np.concatenate([np.asarray(states), np.asarray(corners)])
+    assert _escape(bounds, states) <= TOL
+    short = _short(traj, 6)
+    _, early = certified.certified_bounds(short, params, coulomb="auto", coulomb_spread=1e-3)
+    assert not np.asarray(early.keep)[0, 1:].all()  # ranges taken on these steps
+    result = check_certificate(early, short, params, steps=5)
+    assert result.ok, result.reason
+    for bad in (0.0, -0.1, float("nan"), "wide"):
+        with pytest.raises(ValueError, match="coulomb_spread must be a positive finite"):
+            certified.certified_bounds(short, params, coulomb_spread=bad)
 
 
 def test_default_coulomb_certifies_the_ur5e_default_box_start():

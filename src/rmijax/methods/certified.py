@@ -752,6 +752,7 @@ def _certify_piece(
     matrix_fn=None,
     axis_name=None,
     coulomb="taylor",
+    coulomb_spread=COULOMB_RANGE_SPREAD,
 ):
     """The Taylor-model induction over the whole run for one piece of the box.
 
@@ -769,7 +770,8 @@ def _certify_piece(
     ``vmap`` named ``axis_name`` only once every piece's is not finite. With
     ``coulomb="range"`` (static) the Coulomb errors move an enclosure of their sign over
     each step's tube (:func:`_sign_range`) instead of its Taylor expansion; with
-    ``"auto"`` where the tube's velocities spread wide (the output also holds ``keep``
+    ``"auto"`` where the tube's velocities spread wider than ``coulomb_spread`` (rad/s;
+    static) (the output also holds ``keep``
     (T, n), the choice per step).
     """
     n = traj.n_joints
@@ -821,7 +823,7 @@ def _certify_piece(
         keep = None
         if coulomb != "taylor":
             *consts["sign"], keep = _sign_range(
-                xc, sens, sens2, d_lo, d_hi, rhat, auto=coulomb == "auto"
+                xc, sens, sens2, d_lo, d_hi, rhat, auto=coulomb == "auto", spread=coulomb_spread
             )
             consts["keep"] = keep
         # --- the centre: coefficients of the next Taylor model ---------------
@@ -960,19 +962,19 @@ def _certify_piece(
     return out | diag
 
 
-def _sign_range(xc, sens, sens2, d_lo, d_hi, rhat, auto=False):
+def _sign_range(xc, sens, sens2, d_lo, d_hi, rhat, auto=False, spread=COULOMB_RANGE_SPREAD):
     """``(lo, hi, keep)`` (n,) each: an enclosure of the smooth Coulomb sign ``tanh(qd_j /
     v_s)`` over the tube of one step (``x_c + range(S d + 1/2 Q[d, d]) + [-r, r]``, every
     ``d`` of the piece), rounded outward, the same expression as the jets' (``qd * (1 /
     v_s)``); ``keep`` None. With ``auto`` only where the tube's velocities spread wider
-    than :data:`COULOMB_RANGE_SPREAD`: elsewhere ``keep = 1`` and the enclosure is 0 (the
+    than ``spread`` (rad/s): elsewhere ``keep = 1`` and the enclosure is 0 (the
     sign keeps its expansion)."""
     low, high = _poly_range(sens, sens2, d_lo, d_hi)
     qd = Interval(xc[:, 1]) + Interval(low[:, 1], high[:, 1]) + Interval(-rhat[:, 1], rhat[:, 1])
     sign = tanh(qd * (1.0 / COULOMB_VELOCITY))
     if not auto:
         return sign.lo, sign.hi, None
-    wide = (qd.hi - qd.lo) > COULOMB_RANGE_SPREAD
+    wide = (qd.hi - qd.lo) > spread
     zero = jnp.zeros_like(sign.lo)
     return jnp.where(wide, sign.lo, zero), jnp.where(wide, sign.hi, zero), jnp.where(wide, 0.0, 1.0)
 
@@ -1091,6 +1093,7 @@ def _w_blocks(linear, quadratic, n, p):
         "free",
         "solve",
         "coulomb",
+        "coulomb_spread",
     ),
 )
 def _certify(
@@ -1114,6 +1117,7 @@ def _certify(
     fixed=None,
     solve="articulated",
     coulomb="taylor",
+    coulomb_spread=COULOMB_RANGE_SPREAD,
 ):
     kernel, tail = _kernel(traj.kp, traj.kd, traj.dt, kernel_steps)
     run = functools.partial(
@@ -1136,6 +1140,7 @@ def _certify(
         matrix_fn=solve_matrix(params) if solve == "preconditioned" else None,
         axis_name=_PIECES,
         coulomb=coulomb,
+        coulomb_spread=coulomb_spread,
     )
     n, p = traj.n_joints, params.n_params
     if enclosure == "affine":
@@ -1409,6 +1414,7 @@ def _certify_box(
     max_pieces=None,
     refine=None,
     coulomb="taylor",
+    coulomb_spread=COULOMB_RANGE_SPREAD,
 ):
     """Split the box and certify every piece: ``(centers, los, his, pieces, kernel, tail)``.
 
@@ -1443,6 +1449,7 @@ def _certify_box(
             fixed=fixed,
             solve=solve,
             coulomb=coulomb,
+            coulomb_spread=coulomb_spread,
         )
         if free is not None:  # back to every parameter: the certain ones' coefficients are 0
             rows = np.asarray(free, dtype=np.int32)
@@ -1494,6 +1501,7 @@ def certified_bounds(
     max_pieces: int = AUTO_MAX_PIECES,
     refine: float = AUTO_REFINE,
     coulomb: str = "auto",
+    coulomb_spread: float = COULOMB_RANGE_SPREAD,
 ) -> tuple[Bounds, Certificate]:
     """Bands proven to contain the output of every constant-parameter run, and their certificate.
 
@@ -1565,6 +1573,10 @@ def certified_bounds(
             tightest of the three or equal to the tightest, and it alone certified all
             three, ``docs/methods.md``). No effect without uncertain Coulomb ranges (the
             certificate then records ``"taylor"``).
+        coulomb_spread: with ``coulomb="auto"``, the spread of a step's tube velocities
+            (rad/s, > 0) above which a joint's sign is bounded by its range. A choice:
+            sound at any value (the certificate's ``keep`` records it per joint and step,
+            and the checker follows it); it moves only the band's width.
 
     Returns:
         ``(bounds, certificate)``: :class:`~rmijax.methods.base.Bounds` with
@@ -1610,6 +1622,7 @@ def certified_bounds(
     propagate = _choice("propagate", propagate, ("kernel", "carried"), n)
     solve = _solve_choice(solve, params)
     coulomb = _coulomb_choice(coulomb, params)
+    coulomb_spread = _checks.real("coulomb_spread", coulomb_spread, positive=True, unit="rad/s")
     if isinstance(splits, str):
         if splits != "auto":
             raise ValueError(f"splits must be a count, counts, a dict or 'auto', got {splits!r}")
@@ -1630,6 +1643,7 @@ def certified_bounds(
         max_pieces=max_pieces,
         refine=refine,
         coulomb=coulomb,
+        coulomb_spread=coulomb_spread,
     )
     lower = jnp.min(pieces["lower"], axis=0)
     upper = jnp.max(pieces["upper"], axis=0)
