@@ -405,6 +405,8 @@ CERTIFIED_FILES = (
     "certified_ur5e_box_auto4_2s_seg6_cpu.json",
     "certified_panda_box_auto_seg6_cpu.json",
     "certified_iiwa14_box_auto_seg6_cpu.json",
+    "certified_ur5e_box_auto4_spread003_cpu.json",
+    "certified_ur5e_box_auto4_spread03_cpu.json",
 )
 """Results of ``benchmarks/certified.py``, in the order the table lists them."""
 
