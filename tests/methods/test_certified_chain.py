@@ -341,6 +341,15 @@ def arm2_coulomb(tmp_path_factory):
 MODES = ("range", "auto")
 
 
+def _corner_and_draw_states(traj, params):
+    """Runs of every corner of the box and 200 uniform draws: (S, T+1, n, 2)."""
+    states, _ = rmijax.simulate(traj, params, _samples(params, corners=0, draws=200))
+    lo, hi = np.asarray(params.lo), np.asarray(params.hi)
+    bits = np.array(np.meshgrid(*[[0, 1]] * lo.size, indexing="ij")).reshape(lo.size, -1).T
+    corners, _ = rmijax.simulate(traj, params, np.where(bits == 1, hi, lo))
+    return np.concatenate([np.asarray(states), np.asarray(corners)])
+
+
 @pytest.mark.parametrize("mode", MODES)
 def test_coulomb_range_band_contains_samples(arm2_coulomb, mode):
     """None of 216 constant-parameter runs (all 16 corners, 200 uniform draws) leaves the
@@ -355,11 +364,7 @@ def test_coulomb_range_band_contains_samples(arm2_coulomb, mode):
         assert kept[0] > 0.5 and kept[1] < 0.5, kept
     else:
         assert cert.keep is None
-    states, _ = rmijax.simulate(traj, params, _samples(params, corners=0, draws=200))
-    lo, hi = np.asarray(params.lo), np.asarray(params.hi)
-    bits = np.array(np.meshgrid(*[[0, 1]] * lo.size, indexing="ij")).reshape(lo.size, -1).T
-    corners, _ = rmijax.simulate(traj, params, np.where(bits == 1, hi, lo))
-    states = np.concatenate([np.asarray(states), np.asarray(corners)])
+    states = _corner_and_draw_states(traj, params)
     assert _escape(bounds, states) <= TOL
     bare, _ = certified.certified_bounds(traj, params, coulomb=mode, remainder_scale=0.0)
     assert _escape(bare, states) > 1e-9
@@ -449,11 +454,7 @@ def test_coulomb_spread_moves_the_choice_and_stays_sound(arm2_coulomb):
     bounds, cert = certified.certified_bounds(traj, params, coulomb="auto", coulomb_spread=1.0)
     kept, kept_default = np.asarray(cert.keep).mean(), np.asarray(default.keep).mean()
     assert kept > kept_default, (kept, kept_default)
-    states, _ = rmijax.simulate(traj, params, _samples(params, corners=0, draws=200))
-    lo, hi = np.asarray(params.lo), np.asarray(params.hi)
-    bits = np.array(np.meshgrid(*[[0, 1]] * lo.size, indexing="ij")).reshape(lo.size, -1).T
-    corners, _ = rmijax.simulate(traj, params, np.where(bits == 1, hi, lo))
-    states = np.concatenate([np.asarray(states), np.asarray(corners)])
+    states = _corner_and_draw_states(traj, params)
     assert _escape(bounds, states) <= TOL
     short = _short(traj, 6)
     _, early = certified.certified_bounds(short, params, coulomb="auto", coulomb_spread=1e-3)
