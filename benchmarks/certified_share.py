@@ -45,6 +45,7 @@ import json
 import pathlib
 import sys
 import time
+import types
 
 import jax
 import numpy as np
@@ -211,6 +212,7 @@ def inputs_row(name, duration, splits, coulomb="auto", seed=0):
     if not np.all(np.isfinite(pieces["remainder"])):
         raise SystemExit(f"{name}: the remainder diverged; --inputs needs a finite one")
     centers, los, his = (np.asarray(a) for a in (centers, los, his))
+    coefficients = types.SimpleNamespace(**pieces)  # state, sens, sens2 as a certificate's
     jacobian = _closed_loop_jacobian(traj, params)
     rng = np.random.default_rng(seed)
     first = int(round(0.5 / dt))
@@ -222,12 +224,7 @@ def inputs_row(name, duration, splits, coulomb="auto", seed=0):
         draws = lo + (hi - lo) * rng.uniform(size=(INPUT_SAMPLES, lo.size))
         ths = np.concatenate([np.where(bits, hi, lo), draws])
         runs = np.asarray(rmijax.simulate(traj, params, ths)[0])  # (S, T+1, n, 2)
-        d = ths - centers[i]
-        model = (
-            pieces["state"][i][None]
-            + np.einsum("tnsp,Sp->Stns", pieces["sens"][i], d)
-            + 0.5 * np.einsum("tnspq,Sp,Sq->Stns", pieces["sens2"][i], d, d)
-        )
+        model = _taylor_values(coefficients, i, ths - centers[i])
         rem = (runs - model).reshape(len(ths), -1, 2 * n)  # (S, T+1, 2n)
         a_c = jacobian(pieces["state"][i][:-1], centers[i])  # (T, 2n, 2n)
         xi = rem[:, 1:] - np.einsum("tij,stj->sti", a_c, rem[:, :-1])
