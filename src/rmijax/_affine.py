@@ -146,19 +146,22 @@ class AffineForm:
                 return self._rounded(self.c * s, self.a * s, self.e * jnp.abs(s))
             other = AffineForm.point(s, self.n_symbols)
         x, o = _align(self, other)
-        c = x.c * o.c
         part_x = x.a * o.c[..., None]
         part_y = o.a * x.c[..., None]
         a = part_x + part_y
         products = jnp.sum(jnp.abs(part_x) + jnp.abs(part_y), axis=-1) * _REL
+        rad_x, rad_y = x.rad(), o.rad()
+        centre, radius = _bilinear(x, o, rad_x, rad_y)
+        plain = x.c * o.c
+        c = plain + centre
         e = (
             jnp.abs(x.c) * o.e
             + jnp.abs(o.c) * x.e
-            + x.rad() * o.rad()
-            + (jnp.abs(c) + jnp.sum(jnp.abs(a), axis=-1)) * _REL
+            + radius
+            + (jnp.abs(plain) + jnp.abs(centre) + jnp.abs(c) + jnp.sum(jnp.abs(a), axis=-1)) * _REL
             + products
         )
-        return AffineForm(c, a, _up(e, 5))
+        return AffineForm(c, a, _up(e, 6))
 
     __rmul__ = __mul__
 
@@ -167,6 +170,43 @@ class AffineForm:
 
     def __rtruediv__(self, other):
         return self._of(other) * recip(self)
+
+
+def _power_of_two_balance(rad_x, rad_y):
+    """``lambda = 2^j`` with ``lambda^2`` within a factor 2 of ``rad_y / rad_x`` (1 where
+    either is 0 or not finite): scaling by it is exact."""
+    ok = (rad_x > 0) & (rad_y > 0) & jnp.isfinite(rad_x) & jnp.isfinite(rad_y)
+    ratio = jnp.where(ok, rad_y, 1.0) / jnp.where(ok, rad_x, 1.0)
+    j = jnp.clip(jnp.round(0.5 * jnp.log2(ratio)), -400, 400).astype(jnp.int32)
+    return jnp.where(ok, jnp.ldexp(jnp.ones_like(rad_x), j), 1.0)
+
+
+def _bilinear(x, o, rad_x, rad_y):
+    """``(centre, radius)``: ``(L_x + E_x)(L_y + E_y)`` (``L = a . eps``, ``|E| <= e``) lies
+    in ``centre + [-radius, radius]`` for every ``eps``, rounding included.
+
+    Two bounds, intersected: ``[-rad_x rad_y, rad_x rad_y]``, and the polarisation
+    ``uv = ((lambda u + v / lambda)^2 - (lambda u - v / lambda)^2) / 4``, exact for every
+    real ``lambda != 0``, with ``0 <= (lambda u +- v / lambda)^2 <= (sum_i |lambda a_i +-
+    b_i / lambda| + lambda e_x + e_y / lambda)^2 = Q^2`` or ``P^2``: the product lies in
+    ``[-P^2 / 4, Q^2 / 4]``. Where the two forms move along the same symbols one of ``P``,
+    ``Q`` is small (``x y`` with ``y = x`` gives ``[0, rad^2]``, as :func:`sqr`), where
+    their symbols differ it is the plain bound. ``lambda`` a power of two: the scaled
+    coefficients are exact, each sum ``lambda a_i +- b_i / lambda`` rounds once.
+    """
+    lam = _power_of_two_balance(rad_x, rad_y)
+    su, sv = x.a * lam[..., None], o.a / lam[..., None]  # exact
+    own = x.e * lam + o.e / lam  # exact products, one rounded sum: _up below
+    count = x.a.shape[-1] + 1
+    q = _up(_up(jnp.sum(jnp.abs(su + sv), axis=-1) * (1.0 + _EPS), count) + own, 2)
+    p = _up(_up(jnp.sum(jnp.abs(su - sv), axis=-1) * (1.0 + _EPS), count) + own, 2)
+    plain = _up(rad_x * rad_y)
+    hi = jnp.minimum(_up(0.25 * q * q), plain)
+    lo = -jnp.minimum(_up(0.25 * p * p), plain)
+    centre = 0.5 * (hi + lo)  # any float: the radius below is about it
+    centre = jnp.where(jnp.isfinite(centre), centre, 0.0)  # e = inf: keep c finite
+    radius = _up(jnp.maximum(hi - centre, centre - lo), 2)
+    return centre, radius
 
 
 def _recip_positive(x):

@@ -132,8 +132,9 @@ class _Form:
     ``c + sum_i a_i eps_i + [-e, e]`` (``c``, ``a_i``: intervals, ``e``: an interval
     whose upper end bounds the error), so each operation below is sound by interval
     arithmetic alone. The linearisations are the ones of :mod:`rmijax._affine`
-    (written again here, on ``mpmath``): products and squares bound the quadratic
-    part by the product of radii, ``1/x`` is the min-range linearisation, ``sin`` and
+    (written again here, on ``mpmath``): products bound the quadratic part by the product
+    of radii intersected with a polarisation bound (:func:`_bilinear`), squares by the
+    square of the radius, ``1/x`` is the min-range linearisation, ``sin`` and
     ``cos`` the first-order Taylor form with ``|f''| <= 1``. ``zero`` marks the exact
     zero (most Hessian entries), which every operation short-cuts.
     """
@@ -208,8 +209,9 @@ class _Form:
             return _Form(self.c * k, self.a * k, self.e * abs(k).b)
         if other.zero:
             return other
-        e = abs(self.c).b * other.e + abs(other.c).b * self.e + self.rad() * other.rad()
-        return _Form(self.c * other.c, self.a * other.c + other.a * self.c, e)
+        centre, radius = _bilinear(self, other)
+        e = abs(self.c).b * other.e + abs(other.c).b * self.e + radius
+        return _Form(self.c * other.c + centre, self.a * other.c + other.a * self.c, e)
 
     __rmul__ = __mul__
 
@@ -223,6 +225,31 @@ class _Form:
 
     def __rtruediv__(self, other):
         return _recip(self) * other
+
+
+def _bilinear(x, y):
+    """``(centre, radius)``, both exact: ``(L_x + E_x)(L_y + E_y)`` lies in ``centre +
+    [-radius, radius]`` for every ``eps``. The product of radii intersected with the
+    polarisation ``uv = ((l u + v / l)^2 - (l u - v / l)^2) / 4`` (any real ``l != 0``;
+    here a power of two near ``sqrt(rad_y / rad_x)``): ``[-P^2 / 4, Q^2 / 4]`` with ``Q,
+    P = sum_i |l a_i +- b_i / l| + l e_x + e_y / l``, as :mod:`rmijax._affine`."""
+    iv = _iv()
+    rx, ry = x.rad(), y.rad()
+    plain = (rx * ry).b
+    if float(plain) == 0.0:
+        return iv.mpf(0), iv.mpf(0)
+    ratio = float(ry) / float(rx) if float(rx) > 0 else 1.0
+    scale = iv.mpf(2.0 ** int(round(0.5 * np.log2(ratio)))) if 0 < ratio < np.inf else iv.mpf(1)
+    own = x.e * scale + y.e / scale
+    q, p = own, own
+    for a, b in zip(x.a, y.a, strict=True):
+        u, v = a * scale, b / scale
+        q, p = q + abs(u + v), p + abs(u - v)
+    hi = min((q.b * q.b / 4).b, plain)
+    lo = -min((p.b * p.b / 4).b, plain)
+    centre = iv.mpf(float(((hi + lo) / 2).a))
+    radius = max((hi - centre).b, (centre - lo).b)
+    return centre, radius
 
 
 def _recip(x):
