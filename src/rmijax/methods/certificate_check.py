@@ -230,23 +230,34 @@ class _Form:
 def _bilinear(x, y):
     """``(centre, radius)``, both exact: ``(L_x + E_x)(L_y + E_y)`` lies in ``centre +
     [-radius, radius]`` for every ``eps``. The product of radii intersected with the
-    polarisation ``uv = ((l u + v / l)^2 - (l u - v / l)^2) / 4`` (any real ``l != 0``;
-    here a power of two near ``sqrt(rad_y / rad_x)``): ``[-P^2 / 4, Q^2 / 4]`` with ``Q,
-    P = sum_i |l a_i +- b_i / l| + l e_x + e_y / l``, as :mod:`rmijax._affine`."""
+    polarisation ``uv = ((l u + v / l)^2 - (l u - v / l)^2) / 4`` (any real ``l != 0``):
+    ``[-P^2 / 4, Q^2 / 4]`` with ``Q, P = sum_i |l a_i +- b_i / l| + l e_x + e_y / l``, as
+    :mod:`rmijax._affine`, for ``l = 2^j``, ``j = sign(t) floor(|t| + 1/4)``, ``t = (log2
+    s_y - log2 s_x) / 2``, ``s = sum_i |a_i|`` of the coefficients' midpoints; within
+    ``1e-6`` of a step of ``floor`` every neighbour (the certifier's floats differ from
+    these by ulps), the bounds intersected. Symmetric: ``x * y`` and ``y * x`` give the
+    same bound."""
     iv = _iv()
     rx, ry = x.rad(), y.rad()
     plain = (rx * ry).b
-    if float(plain) == 0.0:
-        return iv.mpf(0), iv.mpf(0)
-    ratio = float(ry) / float(rx) if float(rx) > 0 else 1.0
-    scale = iv.mpf(2.0 ** int(round(0.5 * np.log2(ratio)))) if 0 < ratio < np.inf else iv.mpf(1)
-    own = x.e * scale + y.e / scale
-    q, p = own, own
-    for a, b in zip(x.a, y.a, strict=True):
-        u, v = a * scale, b / scale
-        q, p = q + abs(u + v), p + abs(u - v)
-    hi = min((q.b * q.b / 4).b, plain)
-    lo = -min((p.b * p.b / 4).b, plain)
+    hi, lo = plain, -plain
+    if float(plain) == 0.0 or not np.isfinite(float(plain)):
+        return iv.mpf(0), plain
+    sx = sum(abs(float(a.mid)) for a in x.a)  # the symbols' parts, as the certifier's scale
+    sy = sum(abs(float(b.mid)) for b in y.a)
+    if sx == 0.0 or sy == 0.0:
+        return iv.mpf(0), plain
+    t = 0.5 * (np.log2(sy) - np.log2(sx))
+    steps = {int(np.sign(u) * np.floor(abs(u) + 0.25)) for u in (t - 1e-6, t, t + 1e-6)}
+    for j in sorted(steps):
+        scale = iv.mpf(2.0 ** min(max(j, -400), 400))
+        own = x.e * scale + y.e / scale
+        q, p = own, own
+        for a, b in zip(x.a, y.a, strict=True):
+            u, v = a * scale, b / scale
+            q, p = q + abs(u + v), p + abs(u - v)
+        hi = min(hi, (q.b * q.b / 4).b)
+        lo = max(lo, -(p.b * p.b / 4).b)
     centre = iv.mpf(float(((hi + lo) / 2).a))
     radius = max((hi - centre).b, (centre - lo).b)
     return centre, radius

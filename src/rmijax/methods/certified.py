@@ -103,6 +103,15 @@ KERNEL_STEPS = 400
 
 _EPS = 2.0**-52
 _TINY = 2.0**-1000
+_CHECK_MARGIN = 1e-7
+"""Each step's input bound ``w_k`` is raised by this relative amount (besides its rounding):
+sound with or without it, it leaves room for the independent checker
+(:mod:`rmijax.methods.certificate_check`), whose affine products centre their quadratic
+part on its own exact ends rather than these floats. Affine arithmetic is not monotone
+in those centres (a later product's ``|c| e`` grows as a centre moves off 0), so its
+recomputed bound can come out above the certifier's: by up to 1e-10 of ``w_k`` measured
+(the two-joint Coulomb arm, ``coulomb="range"``); without this margin the checker rejects
+the certificate there."""
 _NEGLIGIBLE = 1e-250  # a remainder radius this small is only the _TINY padding of the steps
 
 AUTO_MAX_PIECES = 64
@@ -907,7 +916,7 @@ def _certify_piece(
             blocks = jnp.concatenate([_w_blocks(linear, quadratic, n, p), jnp.stack(rest, -1)], -1)
         else:
             blocks = None
-        w = w * (1.0 + 4 * _EPS) + _TINY
+        w = w * (1.0 + _CHECK_MARGIN) + _TINY  # rounding (4 ulps) and the checker's margin
         injected = rounding.at[:, 1].add(up(dt * w) * scale)
         injected = injected * (1.0 + 4 * _EPS) + _TINY
         # --- the remainder bound of the next step -----------------------------
