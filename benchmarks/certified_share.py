@@ -36,6 +36,15 @@ for the UR5e's box in 4):
 
     python benchmarks/certified_share.py --inputs --cases ur5e_box --split payload_mass=4 \\
         --json benchmarks/results/certified_inputs_cpu.json
+
+With ``--products`` (loaded arms only; :func:`products_row`) it asks where the affine
+Hessian's width over the tube comes from at the run's last step: the forms' error terms
+against their linear parts, with the products' quadratic part bounded as the certifier
+does, by the plain product of radii, and dropped (about 5 minutes on 2 cores for half a
+second of the UR5e's box in 4):
+
+    python benchmarks/certified_share.py --products --cases ur5e_box --duration 0.5 \\
+        --split payload_mass=4 --json benchmarks/results/certified_products_cpu.json
 """
 
 from __future__ import annotations
@@ -58,7 +67,9 @@ from _common import run_meta  # noqa: E402
 from certified import CASES, _samples, _split_items, _taylor_values, _trajectory  # noqa: E402
 
 import rmijax  # noqa: E402
+from rmijax import _affine  # noqa: E402
 from rmijax.control import closed_loop_step, coupled_perturbation  # noqa: E402
+from rmijax.methods import certified as _certified  # noqa: E402
 from rmijax.methods.certified import _certify_box, _poly_range, certified_bounds  # noqa: E402
 
 POINTS = 3000  # polynomial evaluations per piece: half random corners, half uniform draws
@@ -266,6 +277,128 @@ def inputs_row(name, duration, splits, coulomb="auto", seed=0):
     return row
 
 
+PRODUCT_VARIANTS = ("certifier", "plain", "no_quadratic")
+"""``--products``: the affine product's quadratic part as the certifier bounds it (the
+product of radii intersected with the polarisation bound, centred), as the plain product
+of radii (the bound before stop 45), and dropped (not sound: only to attribute the error
+term to it)."""
+
+
+def _plain_bilinear(x, o, rad_x, rad_y):
+    return jnp.zeros_like(rad_x), _affine._up(rad_x * rad_y)
+
+
+def _no_bilinear(x, o, rad_x, rad_y):
+    return jnp.zeros_like(rad_x), jnp.zeros_like(rad_x)
+
+
+def products_row(name, duration, splits, coulomb="auto"):
+    """Where the affine Hessian's width over the tube comes from, at the last step.
+
+    Certifies ``name`` over ``duration`` s (affine jets, carried propagation, the
+    preconditioned solve: the chains' default), then at the last step of every piece
+    encloses ``gv``'s Hessian over the piece's tube (``_evaluate_affine``, the whole box
+    ``s = 1``) with each product variant (:data:`PRODUCT_VARIANTS`) and sums, over the
+    parameter-parameter block and over every block, ``sum_ab X_ab v_a v_b`` (``v`` the
+    variables' radii: the piece's half-widths, ``r_k``) for ``X`` the forms' error terms
+    ``e`` and their linear parts ``sum_i |a_i|``: the error term is the nonlinear operations'
+    remainders, the linear part the first-order variation over the tube. Medians over
+    pieces and joints (rad/s^2).
+    """
+    build, paths = CASES[name]
+    params = build()
+    traj = _trajectory(paths, duration)
+    n = traj.n_joints
+    zeros = jnp.zeros((n, 2))
+    start = time.perf_counter()
+    options = dict(enclosure="affine", propagate="carried", solve="preconditioned")
+    centers, los, his, pieces, *_ = _certify_box(
+        traj, params, zeros, zeros, splits, coulomb=coulomb, **options
+    )
+    pieces = {key: np.asarray(value) for key, value in pieces.items()}
+    seconds = round(time.perf_counter() - start, 1)
+    if not np.all(np.isfinite(pieces["remainder"])):
+        raise SystemExit(f"{name}: the remainder diverged; --products needs a finite one")
+    free = _certified._free_parameters(params)
+    rows = np.arange(params.n_params) if free is None else np.asarray(free)
+    fixed = jnp.asarray(np.asarray(params.lo))
+    matrix_fn = _certified.solve_matrix(params)
+    layout = _certified._layout(params)
+    k = pieces["state"].shape[1] - 1
+    p = rows.size
+    sums = {
+        f"{v}_{part}_{block}": []
+        for v in PRODUCT_VARIANTS
+        for part in ("e", "lin")
+        for block in ("dd", "all")
+    }
+    for i in range(np.asarray(centers).shape[0]):
+        center = jnp.asarray(np.asarray(centers)[i][rows])
+        d_lo = jnp.minimum(jnp.asarray(np.asarray(los)[i][rows]) - center, 0.0)
+        d_hi = jnp.maximum(jnp.asarray(np.asarray(his)[i][rows]) - center, 0.0)
+        d_rad = jnp.maximum(-d_lo, d_hi)
+        xc = jnp.asarray(pieces["state"][i, k])
+        sens = jnp.asarray(pieces["sens"][i, k][..., rows])
+        sens2 = jnp.asarray(pieces["sens2"][i, k][..., rows[:, None], rows[None, :]])
+        rhat = jnp.asarray(pieces["remainder"][i, k])
+        consts = dict(nominal=params.nominal, u=traj.u_d[k], kp=traj.kp, kd=traj.kd, fixed=fixed)
+        consts["precond"] = _certified._preconditioner(matrix_fn, xc, center, fixed, free)
+        if coulomb != "taylor":
+            *consts["sign"], keep = _certified._sign_range(
+                xc, sens, sens2, d_lo, d_hi, rhat, auto=coulomb == "auto"
+            )
+            consts["keep"] = keep
+        v = np.concatenate([np.asarray(d_rad), np.asarray(rhat).reshape(-1)])
+        weight = v[:, None] * v[None, :]
+        for variant, bilinear in zip(
+            PRODUCT_VARIANTS, (_affine._bilinear, _plain_bilinear, _no_bilinear), strict=True
+        ):
+            forms = _hessian_forms(
+                xc, sens, sens2, center, d_rad, rhat, consts, layout, free, bilinear
+            )
+            for part, values in (("e", forms.e), ("lin", np.abs(forms.a).sum(-1))):
+                weighted = np.asarray(values) * weight  # (n, m, m)
+                sums[f"{variant}_{part}_dd"].append(weighted[:, :p, :p].sum((1, 2)))
+                sums[f"{variant}_{part}_all"].append(weighted.sum((1, 2)))
+    row = dict(
+        case=name,
+        duration=duration,
+        splits=splits,
+        coulomb=coulomb,
+        pieces=int(np.asarray(centers).shape[0]),
+        step=int(k),
+        seconds=seconds,
+    )
+    for key, values in sums.items():
+        row[key] = float(np.median(np.concatenate(values)))
+    return row
+
+
+def _hessian_forms(xc, sens, sens2, center, d_rad, rhat, consts, layout, free, bilinear):
+    """The affine forms of ``gv``'s Hessian over the tube (``_evaluate_affine``'s, before
+    their bounds), with ``bilinear`` as the products' quadratic part."""
+    captured = {}
+    run = _certified.run_affine_tape
+
+    def capture(*args):
+        value, grad, hess = run(*args)
+        captured["h"] = hess
+        return value, grad, hess
+
+    saved = _affine._bilinear
+    try:
+        _affine._bilinear = bilinear
+        _certified.run_affine_tape = capture
+        _certified._evaluate_affine(
+            xc, sens, sens2, center, d_rad, rhat, None, 1.0, consts, layout, free
+        )
+    finally:
+        _affine._bilinear = saved
+        _certified.run_affine_tape = run
+    h = captured["h"]
+    return types.SimpleNamespace(a=np.asarray(h.a), e=np.asarray(h.e))
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", nargs="+", default=["ur5e_box"], choices=list(CASES))
@@ -284,16 +417,26 @@ def main(argv=None):
         help="instead: split the remainder's looseness into its inputs' enclosure and "
         "their independent carrying (inputs_row; loaded arms only)",
     )
+    parser.add_argument(
+        "--products",
+        action="store_true",
+        help="instead: where the affine Hessian's width over the tube comes from, by "
+        "product variant (products_row; loaded arms only)",
+    )
     args = parser.parse_args(argv)
-    if args.inputs and any(name.split("_")[0] not in ARMS for name in args.cases):
-        parser.error("--inputs takes the loaded arms' cases only (ur5e_*, panda_*, iiwa14_*)")
+    if (args.inputs or args.products) and any(
+        name.split("_")[0] not in ARMS for name in args.cases
+    ):
+        parser.error(
+            "--inputs and --products take the loaded arms' cases only (ur5e_*, panda_*, iiwa14_*)"
+        )
     try:
         splits = _split_items(args.split) or None
     except ValueError:
         parser.error(f"--split takes NAME=PARTS items, got {args.split}")
     rows = []
     for name in args.cases:
-        row = inputs_row if args.inputs else share_row
+        row = products_row if args.products else inputs_row if args.inputs else share_row
         rows.append(row(name, args.duration, splits))
         print(json.dumps(rows[-1]), flush=True)
         if args.json:

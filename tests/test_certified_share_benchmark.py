@@ -48,3 +48,19 @@ def test_inputs_row_splits_the_looseness_and_the_radius_holds_every_sampled_rema
     # on a friction box w_k comes from the parameters' block (their effect through the
     # state they move, e.g. the Coulomb sign's curvature), not from the remainder's
     assert shares["parameter_parameter"][0] > 0.5, row
+
+
+def test_products_row_attributes_the_error_term_to_the_products():
+    row = share.products_row("ur5e_friction", 0.1, None)
+    assert row["pieces"] == 1 and row["step"] == 10
+    for block in ("dd", "all"):
+        dropped, certifier, plain = (
+            row[f"{v}_e_{block}"] for v in ("no_quadratic", "certifier", "plain")
+        )
+        # the products' quadratic parts are part of the error term, and the certifier's
+        # polarisation bound is below the plain product of radii
+        assert 0.0 <= dropped < certifier < plain, row
+        # the linear parts do not depend on how the quadratic part is bounded (the
+        # centres move them a little)
+        lin = [row[f"{v}_lin_{block}"] for v in share.PRODUCT_VARIANTS]
+        assert max(lin) <= 1.1 * min(lin), row
