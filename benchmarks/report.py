@@ -407,6 +407,10 @@ CERTIFIED_FILES = (
     "certified_iiwa14_box_auto_seg6_cpu.json",
     "certified_ur5e_box_auto4_spread003_cpu.json",
     "certified_ur5e_box_auto4_spread03_cpu.json",
+    "certified_ur5e_box_auto4_polar_cpu.json",
+    "certified_panda_box_auto_polar_cpu.json",
+    "certified_iiwa14_box_auto_polar_cpu.json",
+    "certified_ur5e_box_auto8w2_polar_cpu.json",
 )
 """Results of ``benchmarks/certified.py``, in the order the table lists them."""
 
@@ -442,6 +446,9 @@ def certified_table():
             )
             spread = r.get("coulomb_spread")  # stop 44 on; the default 0.1 rad/s before
             pair += f" above {spread:g} rad/s" if spread is not None else ""
+            # affine products by polarisation (stop 45, commit c0884cd on); runs before it
+            # bounded the products' quadratic part by the product of radii
+            pair += ", polarised products" if name.endswith("_polar_cpu.json") else ""
             if "diverged" in r:
                 step = r["diverged"].split("(step ")[1].split(",")[0]
                 rows.append(
