@@ -93,7 +93,8 @@ REST_PARTS = ("carried_bounded", "coefficient_radius", "rest")
 bounded terms (the centre Hessian's remainder-remainder block, the parameters' products
 with the carried remainder), the stored coefficients' enclosure radius over ``dt`` (their
 rounding, and with ``coulomb="auto"`` the Coulomb sign's range where the tube's
-velocities spread wide), and what is left (the inflation factors: about 0)."""
+velocities spread wide), and what is left (the inflation factors: the checker's margin of
+1e-7 and a few ulps)."""
 
 
 def _hull_width(lows, highs):

@@ -43,7 +43,8 @@ def test_inputs_row_splits_the_looseness_and_the_radius_holds_every_sampled_rema
     for key, (median, p90) in shares.items():
         # parts of w_k: within [0, 1] (up to the rounding of the division)
         assert -1e-9 <= median <= p90 <= 1.0 + 1e-9, (key, row)
-    # the parts add up to w_k: what is left is the inflation factors' few ulps
+    # the parts add up to w_k: what is left is the inflation factors (the checker's margin,
+    # certified._CHECK_MARGIN = 1e-7, and a few ulps), 0 at the 3 decimals reported
     assert abs(shares["rest"][0]) < 1e-9 and abs(shares["rest"][1]) < 1e-9, row
     # on a friction box w_k comes from the parameters' block (their effect through the
     # state they move, e.g. the Coulomb sign's curvature), not from the remainder's
