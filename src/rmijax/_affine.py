@@ -23,8 +23,8 @@ the min-range linearisation with an interval remainder computed with outward
 rounding, ``x^2`` the exact square of the linear part. A product's quadratic part is
 bounded by the product of radii intersected with a polarisation bound
 (:func:`_bilinear`: about half of it where the two forms move along the same symbols,
-as the Hessian jets' factors do; the UR5e's certified remainder 0.85x at the median);
-no Chebyshev refinement.
+as the Hessian jets' factors do; the UR5e's certified tachometer band 0.90x at the median
+in 4 pieces, ``docs/methods.md``); no Chebyshev refinement.
 
 :func:`run_affine_tape` replays a :class:`rmijax._intervals.Tape` on second-order
 jets whose value, gradient and Hessian entries are affine forms: with the leaves'
@@ -177,8 +177,8 @@ class AffineForm:
 
 def _power_of_two_balance(rad_x, rad_y):
     """``lambda = 2^j`` with ``lambda^2`` within a factor ``2^(+-1.5)`` of ``rad_y / rad_x``
-    (in use the sums ``sum_i |a_i|`` of the two forms)
-    (1 where either is 0 or not finite): scaling by it is exact. ``j = sign(t) floor(|t| +
+    (1 where either is 0 or not finite; :func:`_bilinear` passes the sums ``sum_i |a_i|``
+    of the two forms): scaling by it is exact. ``j = sign(t) floor(|t| +
     1/4)``, ``t = (log2 rad_y - log2 rad_x) / 2``: swapping the factors negates ``t``
     exactly, so ``x * y`` and ``y * x`` are the same floats (the packed Hessians rely on
     it), and the steps of ``floor`` sit away from the ratios the jets make exactly (powers
