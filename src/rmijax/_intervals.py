@@ -442,11 +442,54 @@ def jet_branches(jet, flat, const):
     ]
 
 
+def _slots(ops, args, n_leaves, outputs):
+    """Buffer rows for a tape's values, reused once a value is dead.
+
+    Returns ``(dest (N,), args (N, 2), out (k,), size)``: op ``i`` writes row ``dest[i]``
+    and reads rows ``args[i]``; the outputs end in rows ``out``; ``size >= n_leaves``
+    rows in all (the leaves start in rows ``0..L-1``). A value's row is given back after
+    the op that reads it last (an op reads both operands before it writes, so its result
+    may take an operand's row); the outputs' rows are never given back. On the loaded
+    arms' tapes 173-210 rows instead of 2777-4511.
+    """
+    n_ops = ops.shape[0]
+    last = np.full(n_leaves + n_ops, -1, np.int64)
+    for i in range(n_ops):
+        if ops[i] != _CODE["const"]:  # a literal reads no operand
+            last[args[i, 0]] = i
+            last[args[i, 1]] = i
+    last[np.asarray(outputs, np.int64)] = n_ops
+    row = np.arange(n_leaves + n_ops, dtype=np.int64)  # a value's row
+    free = [j for j in range(n_leaves) if last[j] < 0][::-1]
+    dying = [[] for _ in range(n_ops)]
+    for j in range(n_leaves + n_ops):
+        if 0 <= last[j] < n_ops:
+            dying[last[j]].append(j)
+    dest = np.empty(n_ops, np.int64)
+    new_args = np.empty((n_ops, 2), np.int64)
+    size = n_leaves
+    for i in range(n_ops):
+        new_args[i] = row[args[i]]
+        free.extend(row[j] for j in dying[i])
+        if free:
+            dest[i] = free.pop()
+        else:
+            dest[i], size = size, size + 1
+        row[n_leaves + i] = dest[i]
+        if last[n_leaves + i] < 0:  # never read: its row is free again at once
+            free.append(dest[i])
+    out = row[np.asarray(outputs, np.int64)]
+    return dest.astype(np.int32), new_args.astype(np.int32), out.astype(np.int32), size
+
+
 def replay(tape_arrays, leaves, branches, outputs):
     """Replay a tape: one ``fori_loop`` step per op, each a ``switch`` over ``branches``.
 
+    The buffers hold the live values only (:func:`_slots`): a dead value's row is reused,
+    which keeps them small enough for the cache (and for forms over many symbols).
+
     Args:
-        tape_arrays: ``(ops, args, lits)`` from :meth:`Tape.arrays`.
+        tape_arrays: ``(ops, args, lits)`` from :meth:`Tape.arrays` (numpy arrays).
         leaves: arrays with the ``L`` leaves' rows on their first axis (the buffers'
             layout, whatever the backend).
         branches: from :func:`jet_branches`.
@@ -455,25 +498,26 @@ def replay(tape_arrays, leaves, branches, outputs):
     Returns:
         The buffers' rows ``outputs``, one array per leaf array.
     """
-    ops, args, lits = (jnp.asarray(a) for a in tape_arrays)
+    ops, args, lits = (np.asarray(a) for a in tape_arrays)
     n_leaves = leaves[0].shape[0]
     dtype = leaves[0].dtype
-    size = n_leaves + ops.shape[0]
+    dest, args, out, size = _slots(ops, args, n_leaves, outputs)
     buffers = tuple(
         jnp.concatenate([leaf, jnp.zeros((size - n_leaves,) + leaf.shape[1:], dtype)])
         for leaf in leaves
     )
+    ops, args, lits, dest = (jnp.asarray(a) for a in (ops, args, lits, dest))
 
     def body(i, buffers):
         op, (a, b), lit = ops[i], args[i], lits[i].astype(dtype)
         first = tuple(buf[a] for buf in buffers)
         second = tuple(buf[b] for buf in buffers)
         result = jax.lax.switch(op, branches, first, second, lit)
-        row = n_leaves + i
+        row = dest[i]
         return tuple(buf.at[row].set(r) for buf, r in zip(buffers, result, strict=True))
 
     buffers = jax.lax.fori_loop(0, ops.shape[0], body, buffers)
-    rows = jnp.asarray(outputs)
+    rows = jnp.asarray(out)
     return tuple(buf[rows] for buf in buffers)
 
 
