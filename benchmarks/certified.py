@@ -524,7 +524,7 @@ def main(argv=None):
         help="parts per named parameter, e.g. 'coulomb[joint4]=2' (instead of --splits)",
     )
     parser.add_argument(
-        "--enclosure", choices=("interval", "affine"), default=None, help="default: auto"
+        "--enclosure", choices=("interval", "affine", "paired"), default=None, help="default: auto"
     )
     parser.add_argument(
         "--propagate", choices=("kernel", "carried"), default=None, help="default: auto"
@@ -639,7 +639,7 @@ def main(argv=None):
             params = CASES[name][0]()  # the options the default chooses for it
             n = params.n_joints
             row |= dict(
-                enclosure=_choice("enclosure", args.enclosure, ("interval", "affine"), n),
+                enclosure=_choice("enclosure", args.enclosure, ("interval", "affine", "paired"), n),
                 propagate=_choice("propagate", args.propagate, ("kernel", "carried"), n),
                 segments=args.segments,
                 solve=_solve_choice(args.solve, params),

@@ -333,22 +333,20 @@ def products_row(name, duration, splits, coulomb="auto"):
         for part in ("e", "lin")
         for block in ("dd", "all")
     }
-    for i in range(np.asarray(centers).shape[0]):
-        center = jnp.asarray(np.asarray(centers)[i][rows])
-        d_lo = jnp.minimum(jnp.asarray(np.asarray(los)[i][rows]) - center, 0.0)
-        d_hi = jnp.maximum(jnp.asarray(np.asarray(his)[i][rows]) - center, 0.0)
+    centers, los, his = (np.asarray(a) for a in (centers, los, his))
+    for i in range(centers.shape[0]):
+        center = jnp.asarray(centers[i][rows])
+        d_lo = jnp.minimum(jnp.asarray(los[i][rows]) - center, 0.0)
+        d_hi = jnp.maximum(jnp.asarray(his[i][rows]) - center, 0.0)
         d_rad = jnp.maximum(-d_lo, d_hi)
         xc = jnp.asarray(pieces["state"][i, k])
         sens = jnp.asarray(pieces["sens"][i, k][..., rows])
         sens2 = jnp.asarray(pieces["sens2"][i, k][..., rows[:, None], rows[None, :]])
         rhat = jnp.asarray(pieces["remainder"][i, k])
-        consts = dict(nominal=params.nominal, u=traj.u_d[k], kp=traj.kp, kd=traj.kd, fixed=fixed)
-        consts["precond"] = _certified._preconditioner(matrix_fn, xc, center, fixed, free)
-        if coulomb != "taylor":
-            *consts["sign"], keep = _certified._sign_range(
-                xc, sens, sens2, d_lo, d_hi, rhat, auto=coulomb == "auto"
-            )
-            consts["keep"] = keep
+        consts = _certified._step_consts(
+            xc, sens, sens2, center, d_lo, d_hi, rhat, traj.u_d[k], params.nominal, traj.kp,
+            traj.kd, fixed, matrix_fn=matrix_fn, free=free, coulomb=coulomb,
+        )  # fmt: skip
         v = np.concatenate([np.asarray(d_rad), np.asarray(rhat).reshape(-1)])
         weight = v[:, None] * v[None, :]
         for variant, bilinear in zip(
@@ -366,7 +364,7 @@ def products_row(name, duration, splits, coulomb="auto"):
         duration=duration,
         splits=splits,
         coulomb=coulomb,
-        pieces=int(np.asarray(centers).shape[0]),
+        pieces=int(centers.shape[0]),
         step=int(k),
         seconds=seconds,
     )

@@ -34,12 +34,15 @@ Hessian entries enclose the Hessian at every point of the box.
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from rmijax._intervals import Jet, PackedHessians, down, jet_branches, replay, up
 
-__all__ = ["AffineForm", "AffineBackend", "run_affine_tape"]
+__all__ = ["AffineForm", "AffineBackend", "PairedForm", "pair_count", "run_affine_tape"]
 
 _EPS = 2.0**-52
 _REL = 2.0**-50
@@ -63,11 +66,13 @@ def _lift(x, ndim):
 
 
 def _align(x, y):
-    """Two forms with the same number of axes (leading unit axes added)."""
+    """Two forms with the same number of axes (leading unit axes added), of the class of
+    ``x`` (the tape's forms are all of one class)."""
     ndim = max(x.c.ndim, y.c.ndim)
+    form = type(x)
     return (
-        AffineForm(_lift(x.c, ndim), _lift(x.a, ndim + 1), _lift(x.e, ndim)),
-        AffineForm(_lift(y.c, ndim), _lift(y.a, ndim + 1), _lift(y.e, ndim)),
+        form(_lift(x.c, ndim), _lift(x.a, ndim + 1), _lift(x.e, ndim)),
+        form(_lift(y.c, ndim), _lift(y.a, ndim + 1), _lift(y.e, ndim)),
     )
 
 
@@ -95,18 +100,18 @@ class AffineForm:
     def n_symbols(self):
         return self.a.shape[-1]
 
-    @staticmethod
-    def point(value, k):
+    @classmethod
+    def point(cls, value, k):
         """The exact float ``value`` (any shape) as a form over ``k`` symbols."""
         value = jnp.asarray(value)
-        return AffineForm(
+        return cls(
             value, jnp.zeros(value.shape + (k,), value.dtype), jnp.zeros(value.shape, value.dtype)
         )
 
     def _of(self, other):
         if isinstance(other, AffineForm):
             return other
-        return AffineForm.point(jnp.asarray(other, self.c.dtype), self.n_symbols)
+        return type(self).point(jnp.asarray(other, self.c.dtype), self.n_symbols)
 
     def rad(self):
         """Upper bound of ``|x - c|``."""
@@ -119,12 +124,12 @@ class AffineForm:
 
     def __getitem__(self, index):
         index = index if isinstance(index, tuple) else (index,)
-        return AffineForm(self.c[index], self.a[index + (slice(None),)], self.e[index])
+        return type(self)(self.c[index], self.a[index + (slice(None),)], self.e[index])
 
     def _rounded(self, c, a, e):
         """The form ``(c, a, e)`` with the rounding of ``c`` and ``a`` added to ``e``."""
         slack = (jnp.abs(c) + jnp.sum(jnp.abs(a), axis=-1)) * _REL
-        return AffineForm(c, a, _up(e + slack, 3))
+        return type(self)(c, a, _up(e + slack, 3))
 
     def __add__(self, other):
         x, o = _align(self, self._of(other))
@@ -133,7 +138,7 @@ class AffineForm:
     __radd__ = __add__
 
     def __neg__(self):
-        return AffineForm(-self.c, -self.a, self.e)
+        return type(self)(-self.c, -self.a, self.e)
 
     def __sub__(self, other):
         x, o = _align(self, self._of(other))
@@ -147,14 +152,16 @@ class AffineForm:
             s = jnp.asarray(other, self.c.dtype)
             if s.ndim == 0:
                 return self._rounded(self.c * s, self.a * s, self.e * jnp.abs(s))
-            other = AffineForm.point(s, self.n_symbols)
+            other = type(self).point(s, self.n_symbols)
         x, o = _align(self, other)
         part_x = x.a * o.c[..., None]
         part_y = o.a * x.c[..., None]
         a = part_x + part_y
         products = jnp.sum(jnp.abs(part_x) + jnp.abs(part_y), axis=-1) * _REL
         rad_x, rad_y = x.rad(), o.rad()
-        centre, radius = _bilinear(x, o, rad_x, rad_y)
+        carried, centre, radius = x._quadratic(o, rad_x, rad_y)
+        if carried is not None:  # exact products of the symbols, computed with rounding
+            a = a + carried
         plain = x.c * o.c
         c = plain + centre
         e = (
@@ -164,9 +171,16 @@ class AffineForm:
             + (jnp.abs(plain) + jnp.abs(centre) + jnp.abs(c) + jnp.sum(jnp.abs(a), axis=-1)) * _REL
             + products
         )
-        return AffineForm(c, a, _up(e, 6))
+        return type(x)(c, a, _up(e, 6))
 
     __rmul__ = __mul__
+
+    def _quadratic(self, o, rad_x, rad_y):
+        """``(carried, centre, radius)``: the product's quadratic part ``(L_x + E_x)(L_y +
+        E_y)`` lies in ``carried . eps + centre + [-radius, radius]`` (``carried`` a
+        coefficient per symbol); here ``carried`` is None (nothing carried,
+        :func:`_bilinear`'s bound)."""
+        return (None, *_bilinear(self, o, rad_x, rad_y))
 
     def __truediv__(self, other):
         return self * recip(self._of(other))
@@ -210,20 +224,78 @@ def _bilinear(x, o, rad_x, rad_y):
     su, sv = x.a * lam[..., None], o.a / lam[..., None]  # exact
     own = x.e * lam + o.e / lam  # exact products, one rounded sum: _up below
     count = x.a.shape[-1] + 1
-    q_raw = jnp.sum(jnp.abs(su + sv), axis=-1) + own
-    p_raw = jnp.sum(jnp.abs(su - sv), axis=-1) + own
-    q = _up(_up(jnp.sum(jnp.abs(su + sv), axis=-1) * (1.0 + _EPS), count) + own, 2)
-    p = _up(_up(jnp.sum(jnp.abs(su - sv), axis=-1) * (1.0 + _EPS), count) + own, 2)
-    plain = _up(rad_x * rad_y)
+    q_sum = jnp.sum(jnp.abs(su + sv), axis=-1)
+    p_sum = jnp.sum(jnp.abs(su - sv), axis=-1)
+    q_raw, p_raw = q_sum + own, p_sum + own
+    q = _up(_up(q_sum * (1.0 + _EPS), count) + own, 2)
+    p = _up(_up(p_sum * (1.0 + _EPS), count) + own, 2)
+    product = rad_x * rad_y
+    plain = _up(product)
     hi = jnp.minimum(_up(0.25 * q * q), plain)
     lo = -jnp.minimum(_up(0.25 * p * p), plain)
     # the centre from the floats as computed (any float is sound: the radius is about it),
     # close to the checker's, whose exact ends these are within ulps of
-    centre = 0.5 * (jnp.minimum(0.25 * q_raw * q_raw, rad_x * rad_y))
-    centre = centre - 0.5 * jnp.minimum(0.25 * p_raw * p_raw, rad_x * rad_y)
+    centre = 0.5 * (jnp.minimum(0.25 * q_raw * q_raw, product))
+    centre = centre - 0.5 * jnp.minimum(0.25 * p_raw * p_raw, product)
     centre = jnp.where(jnp.isfinite(centre), centre, 0.0)  # e = inf: keep c finite
     radius = _up(jnp.maximum(hi - centre, centre - lo), 2)
     return centre, radius
+
+
+def pair_count(k):
+    """How many symbols a :class:`PairedForm` over ``k`` first-order symbols has: ``k``
+    and the ``k (k + 1) / 2`` products ``eps_i eps_j``, ``i <= j``."""
+    return k + k * (k + 1) // 2
+
+
+def _first_order(total):
+    """``k`` with ``pair_count(k) == total``."""
+    k = int((np.sqrt(8 * total + 9) - 3) / 2 + 0.5)
+    if pair_count(k) != total:
+        raise ValueError(f"{total} symbols is not k + k (k + 1) / 2 for any k")
+    return k
+
+
+@functools.cache
+def _pairs(k):
+    """The rows ``(i, j)``, ``i <= j``, of the pair symbols, in order (``np.triu_indices``)."""
+    return np.triu_indices(k)
+
+
+@jax.tree_util.register_pytree_node_class
+class PairedForm(AffineForm):
+    """An affine form whose symbols are ``k`` first-order ``eps_i`` and, after them, one
+    symbol per pair ``i <= j``: ``eps_i eps_j`` (``i < j``) and ``2 eps_i^2 - 1``
+    (``i = j``), each in ``[-1, 1]``; in the order of ``np.triu_indices(k)``.
+
+    Every operation of :class:`AffineForm` is sound on it (the pair symbols are treated as
+    independent symbols in ``[-1, 1]``, which the set of their values lies in), and a
+    product carries the product of the two first-order parts exactly in the pair symbols:
+    ``(a . eps)(b . eps) = sum_(i < j) (a_i b_j + a_j b_i) eps_i eps_j + sum_i a_i b_i (1 +
+    (2 eps_i^2 - 1)) / 2``. Only the rest is bounded, by ``rad_x rad_y - A B`` (``A = sum_i
+    |a_i|`` over the first-order symbols), so products of forms that move along different
+    symbols keep how they move together, which :func:`_bilinear` loses. ``pair_count(k)``
+    symbols: 31 first-order symbols (the UR5e's box and remainder) make 527.
+    """
+
+    def _quadratic(self, o, rad_x, rad_y):
+        k = _first_order(self.n_symbols)
+        rows, cols = _pairs(k)
+        a, b = self.a[..., :k], o.a[..., :k]
+        outer = a[..., :, None] * b[..., None, :]
+        upper = outer[..., rows, cols] + outer[..., cols, rows]
+        carried = jnp.where(rows == cols, 0.25 * upper, upper)  # i = j: a_i b_i / 2 (exact)
+        carried = jnp.concatenate([jnp.zeros_like(a), carried], axis=-1)  # every symbol's
+        centre = 0.5 * jnp.sum(jnp.diagonal(outer, axis1=-2, axis2=-1), axis=-1)
+        size_a = jnp.sum(jnp.abs(a), axis=-1)
+        size_b = jnp.sum(jnp.abs(b), axis=-1)
+        # sum_ij |a_i b_j| = A B from below, then the rest's bound from above
+        known = size_a * size_b * (1.0 - (k + 10) * _EPS)
+        rest = jnp.maximum(_up(rad_x * rad_y) - known, 0.0)
+        # the rounding of every a_i b_j and of their pairwise sums (2^-51 A B), of the
+        # centre's sum over k terms (k 2^-53 A B)
+        rounding = size_a * size_b * ((k + 16) * _EPS)
+        return carried, centre, _up(rest + rounding, 2)
 
 
 def _recip_positive(x):
@@ -248,26 +320,29 @@ def _recip_positive(x):
     a = x.a * alpha[..., None]
     slack = (jnp.abs(c) + jnp.abs(alpha * x.c) + jnp.sum(jnp.abs(a), axis=-1)) * _REL
     e = _up(mag * x.e + zeta_rad + slack, 4)
-    return AffineForm(c, a, jnp.where(ok, e, jnp.inf))
+    return type(x)(c, a, jnp.where(ok, e, jnp.inf))
 
 
 def recip(x: AffineForm) -> AffineForm:
     """``1/x``; a form whose range holds 0 gives ``e = inf``."""
     negative = x.c < 0
     sign = jnp.where(negative, -1.0, 1.0).astype(x.c.dtype)
-    flipped = AffineForm(x.c * sign, x.a * sign[..., None], x.e)  # exact
+    flipped = type(x)(x.c * sign, x.a * sign[..., None], x.e)  # exact
     r = _recip_positive(flipped)
-    return AffineForm(r.c * sign, r.a * sign[..., None], r.e)
+    return type(x)(r.c * sign, r.a * sign[..., None], r.e)
 
 
 def sqr(x: AffineForm) -> AffineForm:
-    """``x^2 = c^2 + 2c (L + E) + (L + E)^2``, the last in ``[0, rad^2]``."""
+    """``x^2 = c^2 + 2c (L + E) + (L + E)^2``, the last in ``[0, rad^2]`` (a
+    :class:`PairedForm`: ``x * x``, whose first-order square is carried)."""
+    if isinstance(x, PairedForm):
+        return x * x
     r = x.rad()
     half = 0.5 * r * r
     c = x.c * x.c + half
     a = x.a * (2.0 * x.c)[..., None]
     slack = (jnp.abs(c) + x.c * x.c + half + jnp.sum(jnp.abs(a), axis=-1)) * _REL
-    return AffineForm(c, a, _up(2.0 * jnp.abs(x.c) * x.e + half * (1.0 + _REL) + slack, 4))
+    return type(x)(c, a, _up(2.0 * jnp.abs(x.c) * x.e + half * (1.0 + _REL) + slack, 4))
 
 
 def _trig(x, fn, slope_fn, library=None):
@@ -284,7 +359,7 @@ def _trig(x, fn, slope_fn, library=None):
         library = _TRIG_ABS + jnp.abs(x.c) * _REL  # XLA's error in fn(c) and in the slope
     slack = jnp.sum(jnp.abs(a), axis=-1) * _REL
     e = jnp.abs(s) * x.e + 0.5 * r * r * (1.0 + _REL) + library * (1.0 + r) + slack
-    return AffineForm(c, a, _up(e, 6))
+    return type(x)(c, a, _up(e, 6))
 
 
 def sin(x: AffineForm) -> AffineForm:
@@ -305,12 +380,12 @@ def tanh(x: AffineForm) -> AffineForm:
 def _expand(x: AffineForm, axis: int) -> AffineForm:
     """Insert a length-1 axis at ``axis`` (0 or 1) of a form of rank <= 1."""
     index = (None, slice(None)) if axis == 0 else (slice(None), None)
-    return AffineForm(x.c[index], x.a[index + (slice(None),)], x.e[index])
+    return type(x)(x.c[index], x.a[index + (slice(None),)], x.e[index])
 
 
 class AffineBackend:
-    """The operations :class:`rmijax._intervals.Jet` needs, on :class:`AffineForm` arrays
-    over ``k`` symbols."""
+    """The operations :class:`rmijax._intervals.Jet` needs, on arrays of ``form``
+    (:class:`AffineForm` or :class:`PairedForm`) over ``k`` symbols."""
 
     sin = staticmethod(sin)
     cos = staticmethod(cos)
@@ -318,25 +393,25 @@ class AffineBackend:
     recip = staticmethod(recip)
     sqr = staticmethod(sqr)
 
-    def __init__(self, k):
-        self.k = k
+    def __init__(self, k, form=AffineForm):
+        self.k, self.form = k, form
 
     @staticmethod
     def is_interval(x):
         return isinstance(x, AffineForm)
 
     def zeros(self, shape, like=None):
-        return AffineForm.point(jnp.zeros(shape), self.k)
+        return self.form.point(jnp.zeros(shape), self.k)
 
     @staticmethod
     def outer(a, b):
         return _expand(a, 1) * _expand(b, 0)
 
     def point(self, value):
-        return AffineForm.point(value, self.k)
+        return self.form.point(value, self.k)
 
 
-def run_affine_tape(tape_arrays, leaves, outputs):
+def run_affine_tape(tape_arrays, leaves, outputs, form=AffineForm):
     """Replay a tape on second-order jets of affine forms.
 
     Args:
@@ -344,6 +419,8 @@ def run_affine_tape(tape_arrays, leaves, outputs):
         leaves: three :class:`AffineForm` jets parts of the ``L`` leaves: value
             ``(L,)``, gradient ``(L, m)``, Hessian ``(L, m, m)``, each over ``K`` symbols.
         outputs: (r,) rows wanted.
+        form: the forms' class: :class:`PairedForm` carries the products' first-order
+            parts in its pair symbols (the leaves then over ``pair_count(k)`` symbols).
 
     Returns:
         ``(value, grad, hess)`` :class:`AffineForm` of shapes (r,), (r, m), (r, m, m).
@@ -351,12 +428,12 @@ def run_affine_tape(tape_arrays, leaves, outputs):
     value, grad, hess = leaves
     m, k = grad.c.shape[1], value.n_symbols
     dtype = value.c.dtype
-    backend = PackedHessians(m, AffineBackend(k))  # the upper triangles only
+    backend = PackedHessians(m, AffineBackend(k, form))  # the upper triangles only
     size = backend.size
     hess = AffineForm(backend.pack(hess.c), backend.pack(hess.a), backend.pack(hess.e))
 
     def jet(row):
-        return Jet(AffineForm(*row[0:3]), AffineForm(*row[3:6]), AffineForm(*row[6:9]), backend)
+        return Jet(form(*row[0:3]), form(*row[3:6]), form(*row[6:9]), backend)
 
     def flat(j):
         return tuple(leaf for part in (j.v, j.g, j.h) for leaf in (part.c, part.a, part.e))
@@ -370,5 +447,5 @@ def run_affine_tape(tape_arrays, leaves, outputs):
 
     flat_leaves = [leaf for part in (value, grad, hess) for leaf in (part.c, part.a, part.e)]
     out = replay(tape_arrays, flat_leaves, jet_branches(jet, flat, const), outputs)
-    h = AffineForm(*(backend.unpack(x) for x in out[6:9]))
-    return AffineForm(*out[0:3]), AffineForm(*out[3:6]), h
+    h = form(*(backend.unpack(x) for x in out[6:9]))
+    return form(*out[0:3]), form(*out[3:6]), h

@@ -279,10 +279,11 @@ def test_checker_verifies_the_whole_carried_run(pendulum_affine):
 
 
 @pytest.mark.slow
-def test_checker_on_the_two_joint_arm_affine_carried():
+@pytest.mark.parametrize("enclosure", ["affine", "paired"])
+def test_checker_on_the_two_joint_arm_affine_carried(enclosure):
     params = rmijax.paper_arm2()
     traj = rmijax.trajectory(["hold", "sine"], duration=0.3)
-    options = dict(enclosure="affine", propagate="carried")
+    options = dict(enclosure=enclosure, propagate="carried")
     _, cert = certified_bounds(traj, params, **options)
     pieces = [0, cert.n_pieces // 2]
     assert check_certificate(cert, traj, params, steps=3, pieces=pieces).ok
@@ -613,3 +614,39 @@ def test_polynomial_range_is_exact_for_the_linear_part():
     spacing = np.max(np.abs(np.diff(values, axis=-1)), axis=-1).sum(-1)  # grid's miss
     assert np.all(grid_low - low <= spacing + 1e-12)
     assert np.all(high - grid_high <= spacing + 1e-12)
+
+
+@pytest.fixture(scope="module")
+def pendulum_paired(pendulum):
+    traj, params, _, _ = pendulum
+    bounds, cert = certified_bounds(traj, params, splits=2, enclosure="paired", propagate="carried")
+    return traj, params, bounds, cert
+
+
+def test_paired_contains_samples_and_is_no_wider_than_affine(pendulum_affine, pendulum_paired):
+    """Paired forms (the products' first-order parts carried in pair symbols): every sample
+    inside, the remainder no larger than the affine one's at any step and smaller at most;
+    switched off or halved, samples escape (its own mutation test)."""
+    traj, params, bounds, cert = pendulum_paired
+    assert cert.enclosure == "paired"
+    states = np.asarray(rmijax.simulate(traj, params, _samples(params))[0])
+    assert _escape(bounds, states) <= TOL
+    remainder, affine = np.asarray(cert.remainder), np.asarray(pendulum_affine[3].remainder)
+    assert np.all(remainder <= affine * (1 + 1e-9) + 1e-15)
+    late = affine[:, 50:] > 0
+    assert np.median(remainder[:, 50:][late] / affine[:, 50:][late]) < 0.9
+    for scale in (0.0, 0.5):
+        mutant, _ = certified_bounds(
+            traj, params, splits=2, enclosure="paired", propagate="carried", remainder_scale=scale
+        )
+        assert _escape(mutant, states) > 1e-6
+
+
+def test_checker_verifies_paired_and_rejects_the_halved_remainder(pendulum_paired):
+    traj, params, _, cert = pendulum_paired
+    assert check_certificate(cert, traj, params, steps=12).ok
+    _, mutant = certified_bounds(
+        traj, params, splits=2, enclosure="paired", propagate="carried", remainder_scale=0.5
+    )
+    result = check_certificate(mutant, traj, params, steps=12)
+    assert not result.ok and "remainder input" in result.reason

@@ -16,8 +16,9 @@ certificate but uses its numbers as the *claims* to verify:
    differ from them by at most the rounding part; with the Lagrange remainder
    of ``gv`` over the tube that ``r_k`` defines (the Hessian enclosed by interval
    jets, or for ``enclosure="affine"`` by affine jets whose coefficients are
-   ``mpmath`` intervals, :class:`_Form`), the stored input bound ``w_k`` is at least
-   the recomputed one;
+   ``mpmath`` intervals, :class:`_Form`; ``"paired"``: :class:`_PairedForm`, whose
+   products carry their first-order parts in pair symbols), the stored input bound
+   ``w_k`` is at least the recomputed one;
 4. ``propagate="kernel"``: ``r_{k+1} >= sum_{j <= k} |A^(k-j)| w_j`` with the powers
    of ``A`` in interval arithmetic (no truncation). ``propagate="carried"``: the
    checker carries its own generators, ``R_k = G eps + sum_b d_b G^b eps``, through
@@ -177,19 +178,19 @@ class _Form:
         if k is NotImplemented:
             return NotImplemented
         if k is not None:
-            return _Form(self.c + k, self.a, self.e)
+            return type(self)(self.c + k, self.a, self.e)
         if self.zero:
             return other
         if other.zero:
             return self
-        return _Form(self.c + other.c, self.a + other.a, self.e + other.e)
+        return type(self)(self.c + other.c, self.a + other.a, self.e + other.e)
 
     __radd__ = __add__
 
     def __neg__(self):
         if self.zero:
             return self
-        return _Form(-self.c, -self.a, self.e)
+        return type(self)(-self.c, -self.a, self.e)
 
     def __sub__(self, other):
         if isinstance(other, np.ndarray):
@@ -206,12 +207,18 @@ class _Form:
         if self.zero:
             return self
         if k is not None:
-            return _Form(self.c * k, self.a * k, self.e * abs(k).b)
+            return type(self)(self.c * k, self.a * k, self.e * abs(k).b)
         if other.zero:
             return other
-        centre, radius = _bilinear(self, other)
+        carried, centre, radius = self._quadratic(other)
         e = abs(self.c).b * other.e + abs(other.c).b * self.e + radius
-        return _Form(self.c * other.c + centre, self.a * other.c + other.a * self.c, e)
+        a = self.a * other.c + other.a * self.c
+        return type(self)(self.c * other.c + centre, a if carried is None else a + carried, e)
+
+    def _quadratic(self, other):
+        """``(carried, centre, radius)`` of the product's quadratic part: nothing carried,
+        :func:`_bilinear`'s bound."""
+        return (None, *_bilinear(self, other))
 
     __rmul__ = __mul__
 
@@ -283,13 +290,15 @@ def _recip(x):
     zeta_lo = (2 * iv.sqrt(mag)).a  # 1/t + |alpha| t >= 2 sqrt(|alpha|) for every t > 0
     mid = iv.mpf(float((zeta_lo + zeta_hi).a) / 2)
     zeta_rad = max(abs(zeta_hi - mid).b, abs(mid - zeta_lo).b)
-    return _Form(x.c * alpha + mid * sign, x.a * alpha, mag * x.e + zeta_rad)
+    return type(x)(x.c * alpha + mid * sign, x.a * alpha, mag * x.e + zeta_rad)
 
 
 def _sqr(x):
     """``x^2 = c^2 + 2c (L + E) + (L + E)^2``, the last in ``[0, rad^2]``."""
     if x.zero:
         return x
+    if isinstance(x, _PairedForm):
+        return x * x
     r = x.rad()
     half = r * r / 2
     return _Form(x.c * x.c + half, x.a * (2 * x.c), 2 * abs(x.c).b * x.e + half)
@@ -299,15 +308,59 @@ def _trig(x, fn, slope):
     """``fn(c + d) = fn(c) + fn'(c) d + rho``, ``|rho| <= d^2 / 2``."""
     r = x.rad()
     s = slope(x.c)
-    return _Form(fn(x.c), x.a * s, abs(s).b * x.e + r * r / 2)
+    return type(x)(fn(x.c), x.a * s, abs(s).b * x.e + r * r / 2)
+
+
+class _PairedForm(_Form):
+    """:class:`rmijax._affine.PairedForm` on ``mpmath``: ``k`` first-order symbols, then
+    one per pair ``i <= j`` (``eps_i eps_j``, and ``2 eps_i^2 - 1`` for ``i = j``) in
+    ``np.triu_indices(k)`` order. A product carries ``(a . eps)(b . eps)`` in them
+    exactly (interval coefficients) and bounds the rest by ``rad_x rad_y - A B``."""
+
+    __slots__ = ()
+
+    def _quadratic(self, other):
+        iv = _iv()
+        k = _first_order(len(self.a))
+        a, b = self.a[:k], other.a[:k]
+        carried = np.full(len(self.a), iv.mpf(0), dtype=object)
+        centre = iv.mpf(0)
+        for index, (i, j) in enumerate(zip(*np.triu_indices(k), strict=True)):
+            if i == j:
+                carried[k + index] = a[i] * b[i] / 2
+                centre = centre + a[i] * b[i] / 2
+            else:
+                carried[k + index] = a[i] * b[j] + a[j] * b[i]
+        size_a = sum((abs(v).a for v in a), iv.mpf(0))  # sum_i |a_i| from below
+        size_b = sum((abs(v).a for v in b), iv.mpf(0))
+        rest = (iv.mpf(self.rad()) * other.rad() - size_a * size_b).b
+        return carried, centre, max(rest, iv.mpf(0).b)
+
+    @staticmethod
+    def point(iv, value, k):
+        form = _Form.point(iv, value, k)
+        return _PairedForm(form.c, form.a, form.e)
+
+    @staticmethod
+    def nil(iv, k):
+        form = _Form.nil(iv, k)
+        return _PairedForm(form.c, form.a, form.e, True)
+
+
+def _first_order(total):
+    """``k`` with ``k + k (k + 1) / 2 == total`` (:func:`rmijax._affine.pair_count`)."""
+    k = int((np.sqrt(8 * total + 9) - 3) / 2 + 0.5)
+    if k + k * (k + 1) // 2 != total:
+        raise ValueError(f"{total} symbols is not k + k (k + 1) / 2 for any k")
+    return k
 
 
 class _MpAffineBackend:
-    """The operations :class:`rmijax._intervals.Jet` needs, on :class:`_Form` over ``k``
-    symbols."""
+    """The operations :class:`rmijax._intervals.Jet` needs, on ``form`` (:class:`_Form`
+    or :class:`_PairedForm`) over ``k`` symbols."""
 
-    def __init__(self, iv, k):
-        self.iv, self.k = iv, k
+    def __init__(self, iv, k, form=_Form):
+        self.iv, self.k, self.form = iv, k, form
 
     def sin(self, x):
         return _trig(x, self.iv.sin, self.iv.cos)
@@ -330,14 +383,14 @@ class _MpAffineBackend:
     def zeros(self, shape, like=None):
         out = np.empty(shape, dtype=object)
         for index in np.ndindex(shape):
-            out[index] = _Form.nil(self.iv, self.k)
+            out[index] = self.form.nil(self.iv, self.k)
         return out
 
     def outer(self, a, b):
         return np.multiply.outer(a, b)
 
     def point(self, value):
-        return _Form.point(self.iv, value, self.k)
+        return self.form.point(self.iv, value, self.k)
 
 
 def _arr(iv, values):
@@ -505,10 +558,10 @@ def _tiling_error(cert, params):
 def check_certificate(cert, traj, params, *, steps: int | None = None, pieces=None) -> CheckResult:
     """Re-verify a certificate with outward-rounded ``mpmath`` interval arithmetic.
 
-    Every pair of ``enclosure`` (``"interval"``, ``"affine"``) and ``propagate``
-    (``"kernel"``, ``"carried"``) is verified: the Hessian over the tube by the same
-    kind of enclosure (interval jets, or affine jets on ``mpmath``), the remainder by
-    the kernel's sums or by generators that the checker carries itself.
+    Every pair of ``enclosure`` (``"interval"``, ``"affine"``, ``"paired"``) and
+    ``propagate`` (``"kernel"``, ``"carried"``) is verified: the Hessian over the tube by
+    the same kind of enclosure (interval jets, or affine or paired jets on ``mpmath``),
+    the remainder by the kernel's sums or by generators that the checker carries itself.
 
     Args:
         cert: the :class:`~rmijax.methods.certified.Certificate` of
@@ -526,9 +579,10 @@ def check_certificate(cert, traj, params, *, steps: int | None = None, pieces=No
         ValueError: a certificate whose ``enclosure``, ``propagate`` or ``solve`` is
             not one of the above.
     """
-    if cert.enclosure not in ("interval", "affine") or cert.propagate not in ("kernel", "carried"):
+    enclosures = ("interval", "affine", "paired")
+    if cert.enclosure not in enclosures or cert.propagate not in ("kernel", "carried"):
         raise ValueError(
-            "check_certificate: cert.enclosure must be 'interval' or 'affine' and "
+            "check_certificate: cert.enclosure must be 'interval', 'affine' or 'paired' and "
             f"cert.propagate 'kernel' or 'carried', got {cert.enclosure!r} and "
             f"{cert.propagate!r}: pass the Certificate that certified_bounds returned"
         )
@@ -829,29 +883,46 @@ def _affine_hessians(iv, xc, s1, s2, center, d_rad, rhat, eta_hat, s_hi, consts,
     the error term), its ``d``-gradient ``S + Q d``."""
     n, p, noisy = setup["n"], setup["p"], setup["noisy"]
     m = p + 2 * n + (2 * n if noisy else 0)
-    backend = _MpAffineBackend(iv, m)
+    paired = setup["enclosure"] == "paired"
+    total = m + m * (m + 1) // 2 if paired else m
+    kind = _PairedForm if paired else _Form
+    backend = _MpAffineBackend(iv, total, kind)
     radii = list(d_rad) + list(rhat) + (list(eta_hat) if noisy else [])
     rho = [(iv.mpf(r) * s_hi).b for r in radii]  # each symbol's exact radius, rounded up
+    pair_index = {pair: m + i for i, pair in enumerate(zip(*np.triu_indices(m), strict=True))}
 
     def form(c, coefficients, e=None):
-        a = np.full(m, iv.mpf(0), dtype=object)
+        a = np.full(total, iv.mpf(0), dtype=object)
         for index, value in coefficients.items():
             a[index] = value
         c = c if isinstance(c, iv.mpf) else iv.mpf(float(c))
-        return _Form(c, a, iv.mpf(0) if e is None else e)
+        return kind(c, a, iv.mpf(0) if e is None else e)
 
     state = np.empty((n, 2), dtype=object)
     grad_d = np.empty((n, 2, p), dtype=object)
     for i in range(n):
         for s in range(2):
             col = p + 2 * i + s
-            quad = iv.mpf(0)
-            for b in range(p):
-                for c in range(p):
-                    quad = quad + abs(s2[i, s][b, c]) * (rho[b] * rho[c])
             coefficients = {b: s1[i, s][b] * rho[b] for b in range(p)}
             coefficients[col] = rho[col]
-            state[i, s] = form(xc[i, s], coefficients, (quad / 2).b)
+            q = s2[i, s]
+            if paired:  # 1/2 Q[d, d] in the pair symbols of d (d_b = rho_b eps_b)
+                centre = xc[i, s] if isinstance(xc[i, s], iv.mpf) else iv.mpf(float(xc[i, s]))
+                for b in range(p):
+                    for c in range(b, p):
+                        if b == c:
+                            coefficients[pair_index[b, b]] = q[b, b] * (rho[b] * rho[b]) / 4
+                            centre = centre + q[b, b] * (rho[b] * rho[b]) / 4
+                        else:
+                            weight = rho[b] * rho[c]
+                            coefficients[pair_index[b, c]] = (q[b, c] + q[c, b]) * weight / 2
+                state[i, s] = form(centre, coefficients)
+            else:
+                quad = iv.mpf(0)
+                for b in range(p):
+                    for c in range(p):
+                        quad = quad + abs(q[b, c]) * (rho[b] * rho[c])
+                state[i, s] = form(xc[i, s], coefficients, (quad / 2).b)
             for b in range(p):
                 grad_d[i, s, b] = form(s1[i, s][b], {c: s2[i, s][b, c] * rho[c] for c in range(p)})
     th = np.array([form(center[b], {b: rho[b]}) for b in range(p)], dtype=object)
@@ -926,7 +997,7 @@ def _check_step(iv, backend, k, data, u, gens_d, setup):
         s_hi = iv.mpf(j + 1) / segments
         s_lo = iv.mpf(j) / segments
         weight = (s_hi - s_lo) - (s_hi**2 - s_lo**2) / 2
-        if setup["enclosure"] == "affine":
+        if setup["enclosure"] != "interval":  # affine or paired forms
             hessians = _affine_hessians(
                 iv, xc, s1, s2, center, d_rad, rhat, eta_hat, s_hi, consts, setup
             )

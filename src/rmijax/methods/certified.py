@@ -78,8 +78,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from rmijax import _checks
-from rmijax._affine import AffineForm, run_affine_tape
-from rmijax._intervals import Interval, Tape, run_tape, tanh, up
+from rmijax._affine import AffineForm, PairedForm, pair_count, run_affine_tape
+from rmijax._intervals import Interval, Tape, _slots, run_tape, tanh, up
 from rmijax.control import coupled_perturbation
 from rmijax.methods.base import Bounds, DivergedError, check_types
 from rmijax.methods.chain_jets import chain_perturbation_jets, solve_preconditioned
@@ -347,8 +347,8 @@ class Certificate:
         lower, upper: (T+1, n, 2) the band (noise included).
         noise_lo, noise_hi: (n, 2) sensor noise bounds.
         segments: radial segments of the Lagrange remainder (static).
-        enclosure: ``"interval"`` or ``"affine"``: how the Hessian over the tube was
-            enclosed (static).
+        enclosure: ``"interval"``, ``"affine"`` or ``"paired"``: how the Hessian over
+            the tube was enclosed (static).
         propagate: ``"kernel"`` (``remainder`` from ``injected`` through ``kernel``
             and ``tail``) or ``"carried"`` (through the pieces' own loops; the
             generators are not stored: :func:`check_certificate` carries its own) (static).
@@ -653,8 +653,9 @@ def _evaluate(state, state_grad_d, sens2, th_value, noise_value, consts, layout=
 
 
 def _evaluate_affine(
-    xc, sens, sens2, center, d_rad, rhat, eta_hat, scale, consts, layout=None, free=None
-):
+    xc, sens, sens2, center, d_rad, rhat, eta_hat, scale, consts, layout=None, free=None,
+    paired=False,
+):  # fmt: skip
     """The Hessian of ``gv`` in ``z = (d, R[, eta])`` over the box ``scale Z``, enclosed
     by affine arithmetic with rounding bounded (:mod:`rmijax._affine`).
 
@@ -671,6 +672,8 @@ def _evaluate_affine(
         center: (p,) ``th_c``; d_rad: (p,) the piece's half-widths (upper bounds);
         rhat: (n, 2) remainder bound; eta_hat: (n, 2) noise bound, or None.
         scale: the segment's end ``s``; consts, layout, free: as :func:`_evaluate`.
+        paired: (static) the forms are :class:`rmijax._affine.PairedForm`: the products'
+            first-order parts, and the state's ``1/2 Q[d, d]``, carried in pair symbols.
 
     Returns:
         ``(lo, hi)`` (n, m, m): bounds of every Hessian entry over the box.
@@ -734,9 +737,48 @@ def _evaluate_affine(
         return AffineForm(*parts)
 
     leaves = (cat(values), cat(grads), cat([AffineForm.point(h, m) for h in hess]))
+    form = AffineForm
+    if paired:
+        leaves = _paired_leaves(leaves, x_form, sens2, rad, n, p)
+        form = PairedForm
     tape, rows = _perturbation_tape(layout, n, width, noisy, *_tape_flags(consts))
-    _, _, h = run_affine_tape(tape, leaves, np.asarray(rows))
+    _, _, h = run_affine_tape(tape, leaves, np.asarray(rows), form)
     return h.bounds()
+
+
+def _paired_leaves(leaves, x_form, sens2, rad, n, p):
+    """The leaves of :func:`_evaluate_affine` as :class:`PairedForm` jets: every form padded
+    with zero pair coefficients, and the states' ``1/2 Q[d, d]`` (``d_b = rad_b eps_b``)
+    moved from their error terms into the pair symbols of ``d``: ``Q_bc rad_b rad_c`` on
+    ``eps_b eps_c`` (``b < c``) and ``1/4 Q_bb rad_b^2`` on ``2 eps_b^2 - 1`` and in the
+    centre; the error terms keep the rounding."""
+    m = rad.shape[0]
+    total = pair_count(m)
+
+    def pad(f):
+        zeros = jnp.zeros(f.a.shape[:-1] + (total - m,), f.a.dtype)
+        return PairedForm(f.c, jnp.concatenate([f.a, zeros], -1), f.e)
+
+    value, grad, hess = (pad(f) for f in leaves)
+    rows, cols = np.triu_indices(m)
+    inner = (rows < p) & (cols < p)  # the pairs of d's symbols
+    rr, cc = rows[inner], cols[inner]
+    weight = rad[rr] * rad[cc]
+    swap = lambda x: jnp.swapaxes(x, 0, 1).reshape((2 * n,) + x.shape[2:])  # noqa: E731
+    q = swap(sens2)[:, rr, cc] * weight[None]  # (2n, pairs)
+    coef = jnp.where((rr == cc)[None], 0.25 * q, q)
+    centre = jnp.sum(jnp.where((rr == cc)[None], 0.25 * q, 0.0), -1)
+    index = np.flatnonzero(inner) + m
+    states = 2 * n  # the leaves start with the 2n states (x_form)
+    c = value.c.at[:states].add(centre)
+    a = value.a.at[:states, index].set(coef)
+    # the error term held 1/2 sum |Q| rad rad; now the rounding of the state's centre and
+    # coefficients (as exact() in _evaluate_affine) and of the carried terms: q (3 ulps),
+    # the centre's sum of p terms, its addition to c
+    own = (jnp.abs(x_form.c) + jnp.sum(jnp.abs(x_form.a), -1)) * 2.0**-50
+    carried = jnp.sum(jnp.abs(q), -1) * ((p + 8) * _EPS) + jnp.abs(c[:states]) * _EPS
+    e = value.e.at[:states].set((own + carried) * (1.0 + 16 * _EPS) + _TINY)
+    return PairedForm(c, a, e), grad, hess
 
 
 def _certify_piece(
@@ -826,15 +868,11 @@ def _certify_piece(
 
     def live_step(carry, u):
         xc, sens, sens2, buf, tail_max, rhat, gens, gens_d, k = carry
-        consts = dict(nominal=nominal, u=u, kp=kp, kd=kd, fixed=fixed)
-        if matrix_fn is not None:
-            consts["precond"] = _preconditioner(matrix_fn, xc, center, fixed, free)
-        keep = None
-        if coulomb != "taylor":
-            *consts["sign"], keep = _sign_range(
-                xc, sens, sens2, d_lo, d_hi, rhat, auto=coulomb == "auto", spread=coulomb_spread
-            )
-            consts["keep"] = keep
+        consts = _step_consts(
+            xc, sens, sens2, center, d_lo, d_hi, rhat, u, nominal, kp, kd, fixed,
+            matrix_fn=matrix_fn, free=free, coulomb=coulomb, coulomb_spread=coulomb_spread,
+        )  # fmt: skip
+        keep = consts.get("keep")
         # --- the centre: coefficients of the next Taylor model ---------------
         zero_noise = Interval(jnp.zeros((n, 2), dtype)) if noisy else None
         g0, g1, g2 = _evaluate(
@@ -871,7 +909,7 @@ def _certify_piece(
             )
 
         def segment_spread(s_hi, weight):
-            if enclosure == "affine":
+            if enclosure != "interval":  # affine or paired forms
                 h_box = Interval(
                     *_evaluate_affine(
                         xc,
@@ -885,6 +923,7 @@ def _certify_piece(
                         consts,
                         layout,
                         free,
+                        paired=enclosure == "paired",
                     )
                 )
             else:
@@ -969,6 +1008,42 @@ def _certify_piece(
     out |= dict(keep=keeps) if coulomb == "auto" else {}
     diag = dict(w_blocks=blocks[..., :10], w_rest=blocks[..., 10:]) if diagnostics else {}
     return out | diag
+
+
+def _step_consts(
+    xc,
+    sens,
+    sens2,
+    center,
+    d_lo,
+    d_hi,
+    rhat,
+    u,
+    nominal,
+    kp,
+    kd,
+    fixed,
+    matrix_fn=None,
+    free=None,
+    coulomb="taylor",
+    coulomb_spread=COULOMB_RANGE_SPREAD,
+):
+    """The constants of one step's jets (``consts`` of :func:`_evaluate`): the nominal
+    parameters, the command ``u`` (n,), the gains, ``fixed``; with ``matrix_fn`` the
+    preconditioner at the centre state (:func:`_preconditioner`); with ``coulomb`` other
+    than ``"taylor"`` the Coulomb signs' enclosure over the tube ``"sign"`` and ``"keep"``
+    (:func:`_sign_range`). Shared by :func:`_certify_piece` and the benchmarks that
+    re-evaluate one of its steps."""
+    consts = dict(nominal=nominal, u=u, kp=kp, kd=kd, fixed=fixed)
+    if matrix_fn is not None:
+        consts["precond"] = _preconditioner(matrix_fn, xc, center, fixed, free)
+    if coulomb != "taylor":
+        auto = coulomb == "auto"
+        *consts["sign"], keep = _sign_range(
+            xc, sens, sens2, d_lo, d_hi, rhat, auto=auto, spread=coulomb_spread
+        )
+        consts["keep"] = keep
+    return consts
 
 
 def _sign_range(xc, sens, sens2, d_lo, d_hi, rhat, auto=False, spread=COULOMB_RANGE_SPREAD):
@@ -1152,9 +1227,11 @@ def _certify(
         coulomb_spread=coulomb_spread,
     )
     n, p = traj.n_joints, params.n_params
-    if enclosure == "affine":
+    if enclosure != "interval":
         precond, ranged = solve == "preconditioned", coulomb != "taylor" and coulomb
-        batch = _affine_batch(layout, n, p, centers.shape[1], noisy, precond, ranged)
+        batch = _affine_batch(
+            layout, n, p, centers.shape[1], noisy, precond, ranged, enclosure == "paired"
+        )
     else:
         batch = centers.shape[0]
     count = centers.shape[0]
@@ -1174,18 +1251,20 @@ def _certify(
     return pieces, kernel, tail
 
 
-def _affine_batch(layout, n, p, variables, noisy, precond=False, ranged=False):
+def _affine_batch(layout, n, p, variables, noisy, precond=False, ranged=False, paired=False):
     """How many pieces to evaluate together on affine jets: as many as keep the tape's
-    buffers (rows x packed Hessian, gradient and value x (symbols + 2) floats) within
-    :data:`_AFFINE_BUFFER`, at least one. Measured on this 2-core CPU (the Intel Xeon
-    host): the two-joint arm's 2 s run (16 pieces, 0.5 MB each) took 5.3 / 4.7 / 4.4 /
-    7.4 / 8.6 s once compiled in batches of 1 / 2 / 4 / 8 / 16, one 4-link evaluation
-    (9 MB) 13.8 ms alone and 20.8 ms per piece in batches of 16: larger batches leave
-    the cache."""
-    tape, _ = _perturbation_tape(layout, n, p, noisy, precond, ranged)
+    buffers (live rows x packed Hessian, gradient and value x (symbols + 2) floats) within
+    :data:`_AFFINE_BUFFER`, at least one (``paired``: :class:`rmijax._affine.PairedForm`
+    jets, ``pair_count(m)`` symbols). Measured on this 2-core CPU (the Intel Xeon
+    host, before the buffers held the live rows only): the two-joint arm's 2 s run (16
+    pieces, 0.5 MB each) took 5.3 / 4.7 / 4.4 / 7.4 / 8.6 s once compiled in batches of 1
+    / 2 / 4 / 8 / 16, one 4-link evaluation (9 MB) 13.8 ms alone and 20.8 ms per piece in
+    batches of 16: larger batches leave the cache."""
+    (ops, args, _), outputs = _perturbation_tape(layout, n, p, noisy, precond, ranged)
     m = variables + 2 * n + (2 * n if noisy else 0)  # (d, R[, eta]): uncertain ``d`` only
-    rows = _tape_leaves(n, p, noisy, precond, ranged) + tape[0].shape[0]
-    per_piece = rows * (m * (m + 1) // 2 + m + 1) * (m + 2) * 8
+    rows = _slots(ops, args, _tape_leaves(n, p, noisy, precond, ranged), outputs)[3]
+    symbols = pair_count(m) if paired else m
+    per_piece = rows * (m * (m + 1) // 2 + m + 1) * (symbols + 2) * 8
     return max(1, _AFFINE_BUFFER // per_piece)
 
 
@@ -1472,11 +1551,14 @@ def _certify_box(
         return pieces
 
     if isinstance(splits, str):  # "auto", as certified_bounds checked
-        if enclosure == "affine":  # the batch that keeps the affine buffers in cache
+        if enclosure != "interval":  # the batch that keeps the affine buffers in cache
             variables = lo.size if free is None else len(free)
             precond = solve == "preconditioned"
             ranged = coulomb != "taylor" and coulomb
-            chunk = _affine_batch(layout, traj.n_joints, lo.size, variables, noisy, precond, ranged)
+            paired = enclosure == "paired"
+            chunk = _affine_batch(
+                layout, traj.n_joints, lo.size, variables, noisy, precond, ranged, paired
+            )
         else:
             chunk = AUTO_CHUNK
         *boxes, pieces = _auto_boxes(traj, params, certify, max_pieces, refine, chunk)
@@ -1545,8 +1627,11 @@ def certified_bounds(
         enclosure: how the Hessian of the perturbation is enclosed over the tube:
             ``"interval"`` (interval 2-jets) or ``"affine"`` (affine forms in the
             parameters and the remainder, rounding bounded: tighter, about 2x slower
-            at two joints, needed from three). None: interval up to two joints,
-            affine above.
+            at two joints, needed from three) or ``"paired"`` (affine forms that also
+            carry every product of two variables in a symbol of its own,
+            :class:`rmijax._affine.PairedForm`: tighter again, ``m (m + 1) / 2`` more
+            symbols for ``m`` variables, so slower and larger). None: interval up to two
+            joints, affine above.
         propagate: how the remainder bound is carried from step to step:
             ``"kernel"`` (the nominal loop's powers, every feedback of the
             remainder on itself in absolute value) or ``"carried"`` (generators
@@ -1627,7 +1712,7 @@ def certified_bounds(
     hi_noise = jnp.broadcast_to(hi_noise, (n, 2))
     kernel_steps = _checks.positive_int("kernel_steps", kernel_steps, "steps")
     segments = _checks.positive_int("segments", segments)
-    enclosure = _choice("enclosure", enclosure, ("interval", "affine"), n)
+    enclosure = _choice("enclosure", enclosure, ("interval", "affine", "paired"), n)
     propagate = _choice("propagate", propagate, ("kernel", "carried"), n)
     solve = _solve_choice(solve, params)
     coulomb = _coulomb_choice(coulomb, params)
