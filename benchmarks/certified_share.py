@@ -40,8 +40,8 @@ for the UR5e's box in 4):
 With ``--products`` (loaded arms only; :func:`products_row`) it asks where the affine
 Hessian's width over the tube comes from at the run's last step: the forms' error terms
 against their linear parts, with the products' quadratic part bounded as the certifier
-does, by the plain product of radii, and dropped (about 5 minutes on 2 cores for half a
-second of the UR5e's box in 4):
+does, by the plain product of radii, dropped, and carried (``enclosure="paired"``'s
+forms; about 5 minutes on 2 cores for half a second of the UR5e's box in 4):
 
     python benchmarks/certified_share.py --products --cases ur5e_box --duration 0.5 \\
         --split payload_mass=4 --json benchmarks/results/certified_products_cpu.json
@@ -282,7 +282,9 @@ PRODUCT_VARIANTS = ("certifier", "plain", "no_quadratic")
 """``--products``: the affine product's quadratic part as the certifier bounds it (the
 product of radii intersected with the polarisation bound, centred), as the plain product
 of radii (the bound before stop 45), and dropped (not sound: only to attribute the error
-term to it)."""
+term to it). Also measured: ``"paired"`` (``enclosure="paired"``'s forms, whose products
+carry their first-order parts in pair symbols: their ``lin`` holds those symbols'
+coefficients too, so compare ``rad``, the forms' whole radius ``lin + e``)."""
 
 
 def _plain_bilinear(x, o, rad_x, rad_y):
@@ -329,8 +331,8 @@ def products_row(name, duration, splits, coulomb="auto"):
     p = rows.size
     sums = {
         f"{v}_{part}_{block}": []
-        for v in PRODUCT_VARIANTS
-        for part in ("e", "lin")
+        for v in PRODUCT_VARIANTS + ("paired",)
+        for part in ("e", "lin", "rad")
         for block in ("dd", "all")
     }
     centers, los, his = (np.asarray(a) for a in (centers, los, his))
@@ -349,13 +351,14 @@ def products_row(name, duration, splits, coulomb="auto"):
         )  # fmt: skip
         v = np.concatenate([np.asarray(d_rad), np.asarray(rhat).reshape(-1)])
         weight = v[:, None] * v[None, :]
-        for variant, bilinear in zip(
-            PRODUCT_VARIANTS, (_affine._bilinear, _plain_bilinear, _no_bilinear), strict=True
-        ):
+        bilinears = (_affine._bilinear, _plain_bilinear, _no_bilinear, _affine._bilinear)
+        for variant, bilinear in zip(PRODUCT_VARIANTS + ("paired",), bilinears, strict=True):
             forms = _hessian_forms(
-                xc, sens, sens2, center, d_rad, rhat, consts, layout, free, bilinear
-            )
-            for part, values in (("e", forms.e), ("lin", np.abs(forms.a).sum(-1))):
+                xc, sens, sens2, center, d_rad, rhat, consts, layout, free, bilinear,
+                paired=variant == "paired",
+            )  # fmt: skip
+            lin = np.abs(forms.a).sum(-1)
+            for part, values in (("e", forms.e), ("lin", lin), ("rad", lin + forms.e)):
                 weighted = np.asarray(values) * weight  # (n, m, m)
                 sums[f"{variant}_{part}_dd"].append(weighted[:, :p, :p].sum((1, 2)))
                 sums[f"{variant}_{part}_all"].append(weighted.sum((1, 2)))
@@ -373,9 +376,12 @@ def products_row(name, duration, splits, coulomb="auto"):
     return row
 
 
-def _hessian_forms(xc, sens, sens2, center, d_rad, rhat, consts, layout, free, bilinear):
+def _hessian_forms(
+    xc, sens, sens2, center, d_rad, rhat, consts, layout, free, bilinear, paired=False
+):
     """The affine forms of ``gv``'s Hessian over the tube (``_evaluate_affine``'s, before
-    their bounds), with ``bilinear`` as the products' quadratic part."""
+    their bounds), with ``bilinear`` as the products' quadratic part (``paired``: the
+    :class:`rmijax._affine.PairedForm` ones, which carry it instead)."""
     captured = {}
     run = _certified.run_affine_tape
 
@@ -389,7 +395,7 @@ def _hessian_forms(xc, sens, sens2, center, d_rad, rhat, consts, layout, free, b
         _affine._bilinear = bilinear
         _certified.run_affine_tape = capture
         _certified._evaluate_affine(
-            xc, sens, sens2, center, d_rad, rhat, None, 1.0, consts, layout, free
+            xc, sens, sens2, center, d_rad, rhat, None, 1.0, consts, layout, free, paired
         )
     finally:
         _affine._bilinear = saved
