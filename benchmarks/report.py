@@ -413,6 +413,8 @@ CERTIFIED_FILES = (
     "certified_ur5e_box_auto8w2_polar_cpu.json",
     "certified_preset4_split2_affine_cpu.json",
     "certified_preset4_split2_paired_cpu.json",
+    "certified_preset4_split1_paired_cpu.json",
+    "certified_preset6_split1_paired_cpu.json",
 )
 """Results of ``benchmarks/certified.py``, in the order the table lists them."""
 

@@ -211,17 +211,12 @@ def tube():
     return params, xc, sens, sens2, center, radius, rhat, u, kp, kd
 
 
-def test_affine_jets_enclose_the_hessian_over_the_box(tube):
-    """``gv``'s Hessian in ``z = (d, R)`` at 300 points of the box (and its corners'
-    signs), by autodiff of the model itself, lies inside the affine enclosure, which is
-    narrower than the interval one almost everywhere."""
+def _sampled_hessians(tube, seed, count=300):
+    """``gv``'s Hessian in ``z = (d, R)`` by autodiff of the model itself at ``count``
+    points of the tube's box (every other one a corner's signs), and each joint's largest
+    entry (autodiff's own rounding is relative to it: zeros come out ~1e-15)."""
     params, xc, sens, sens2, center, radius, rhat, u, kp, kd = tube
     n, p = xc.shape[0], center.shape[0]
-    consts = dict(nominal=params.nominal, u=jnp.asarray(u), kp=jnp.asarray(kp), kd=jnp.asarray(kd))
-    lo, hi = _evaluate_affine(
-        *(jnp.asarray(v) for v in (xc, sens, sens2, center, radius, rhat)), None, 1.0, consts
-    )
-    lo, hi = np.asarray(lo), np.asarray(hi)
 
     def gv(z):
         d, rem = z[:p], z[p:].reshape(n, 2)
@@ -231,13 +226,25 @@ def test_affine_jets_enclose_the_hessian_over_the_box(tube):
         )
 
     scales = np.concatenate([radius, rhat.reshape(-1)])
-    rng = np.random.default_rng(3)
-    points = rng.uniform(-1, 1, (300, scales.size))
+    rng = np.random.default_rng(seed)
+    points = rng.uniform(-1, 1, (count, scales.size))
     points[::2] = np.sign(points[::2])
     hessian = jax.jacfwd(jax.jacfwd(gv))  # half of jax.hessian's (reverse inside) compile
     hessians = np.asarray(jax.jit(jax.vmap(hessian))(jnp.asarray(points * scales)))
-    # autodiff's own rounding: relative to each joint's largest entry (zeros come out ~1e-15)
-    scale = np.abs(hessians).max(axis=(0, 2, 3))[:, None, None]
+    return hessians, np.abs(hessians).max(axis=(0, 2, 3))[:, None, None]
+
+
+def test_affine_jets_enclose_the_hessian_over_the_box(tube):
+    """``gv``'s Hessian in ``z = (d, R)`` at 300 points of the box (and its corners'
+    signs), by autodiff of the model itself, lies inside the affine enclosure, which is
+    narrower than the interval one almost everywhere."""
+    params, xc, sens, sens2, center, radius, rhat, u, kp, kd = tube
+    consts = dict(nominal=params.nominal, u=jnp.asarray(u), kp=jnp.asarray(kp), kd=jnp.asarray(kd))
+    lo, hi = _evaluate_affine(
+        *(jnp.asarray(v) for v in (xc, sens, sens2, center, radius, rhat)), None, 1.0, consts
+    )
+    lo, hi = np.asarray(lo), np.asarray(hi)
+    hessians, scale = _sampled_hessians(tube, seed=3)
     assert np.all(hessians <= hi + 1e-12 * scale)
     assert np.all(hessians >= lo - 1e-12 * scale)
     # the interval jets over the same tube (state box from the polynomial's range)
@@ -342,7 +349,6 @@ def test_paired_tape_encloses_the_hessian_and_is_tighter(tube):
     paired=True)``): the Hessian's enclosure over the tube holds the autodiff Hessians at
     300 points and corners' signs, and is narrower than the affine one's."""
     params, xc, sens, sens2, center, radius, rhat, u, kp, kd = tube
-    n, p = xc.shape[0], center.shape[0]
     consts = dict(nominal=params.nominal, u=jnp.asarray(u), kp=jnp.asarray(kp), kd=jnp.asarray(kd))
     args = [jnp.asarray(v) for v in (xc, sens, sens2, center, radius, rhat)]
     bounds = {}
@@ -350,21 +356,7 @@ def test_paired_tape_encloses_the_hessian_and_is_tighter(tube):
         low, high = _evaluate_affine(*args, None, 1.0, consts, paired=paired)
         bounds[paired] = np.asarray(low), np.asarray(high)
     lo, hi = bounds[True]
-
-    def gv(z):
-        d, rem = z[:p], z[p:].reshape(n, 2)
-        x = xc + sens @ d + 0.5 * jnp.einsum("ijab,a,b->ij", sens2, d, d) + rem
-        return coupled_perturbation(
-            params.model, center + d, params.nominal, x[:, 0], x[:, 1], u, kp, kd
-        )
-
-    scales = np.concatenate([radius, rhat.reshape(-1)])
-    rng = np.random.default_rng(5)
-    points = rng.uniform(-1, 1, (300, scales.size))
-    points[::2] = np.sign(points[::2])
-    hessian = jax.jacfwd(jax.jacfwd(gv))
-    hessians = np.asarray(jax.jit(jax.vmap(hessian))(jnp.asarray(points * scales)))
-    scale = np.abs(hessians).max(axis=(0, 2, 3))[:, None, None]
+    hessians, scale = _sampled_hessians(tube, seed=5)
     assert np.all(hessians <= hi + 1e-12 * scale)
     assert np.all(hessians >= lo - 1e-12 * scale)
     wide = bounds[False][1] - bounds[False][0]

@@ -153,11 +153,16 @@ def test_checker_accepts_the_certificate_and_rejects_tampering(pendulum):
     assert not check_certificate(half_box, traj, params, steps=steps).ok
 
 
+def _pendulum_carried(pendulum, enclosure):
+    traj, params, _, _ = pendulum
+    options = dict(splits=2, enclosure=enclosure, propagate="carried")
+    bounds, cert = certified_bounds(traj, params, **options)
+    return traj, params, bounds, cert
+
+
 @pytest.fixture(scope="module")
 def pendulum_affine(pendulum):
-    traj, params, _, _ = pendulum
-    bounds, cert = certified_bounds(traj, params, splits=2, enclosure="affine", propagate="carried")
-    return traj, params, bounds, cert
+    return _pendulum_carried(pendulum, "affine")
 
 
 def test_affine_carried_contains_samples_and_is_narrower(pendulum, pendulum_affine):
@@ -618,9 +623,7 @@ def test_polynomial_range_is_exact_for_the_linear_part():
 
 @pytest.fixture(scope="module")
 def pendulum_paired(pendulum):
-    traj, params, _, _ = pendulum
-    bounds, cert = certified_bounds(traj, params, splits=2, enclosure="paired", propagate="carried")
-    return traj, params, bounds, cert
+    return _pendulum_carried(pendulum, "paired")
 
 
 def test_paired_contains_samples_and_is_no_wider_than_affine(pendulum_affine, pendulum_paired):
