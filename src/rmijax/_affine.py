@@ -24,7 +24,9 @@ rounding, ``x^2`` the exact square of the linear part. A product's quadratic par
 bounded by the product of radii intersected with a polarisation bound
 (:func:`_bilinear`: about half of it where the two forms move along the same symbols,
 as the Hessian jets' factors do; the UR5e's certified tachometer band 0.90x at the median
-in 4 pieces, ``docs/methods.md``); no Chebyshev refinement.
+in 4 pieces, ``docs/methods.md``); no Chebyshev refinement. :class:`PairedForm` adds a
+symbol per pair of symbols and carries the product of two forms' first-order parts there
+instead (``certified_bounds(..., enclosure="paired")``).
 
 :func:`run_affine_tape` replays a :class:`rmijax._intervals.Tape` on second-order
 jets whose value, gradient and Hessian entries are affine forms: with the leaves'
