@@ -70,6 +70,7 @@ from rmijax.methods.certified import (  # noqa: E402
     AUTO_MAX_PIECES,
     AUTO_REFINE,
     COULOMB_MODES,
+    ENCLOSURES,
     _choice,
     _coulomb_choice,
     _solve_choice,
@@ -523,9 +524,7 @@ def main(argv=None):
         metavar="NAME=PARTS",
         help="parts per named parameter, e.g. 'coulomb[joint4]=2' (instead of --splits)",
     )
-    parser.add_argument(
-        "--enclosure", choices=("interval", "affine", "paired"), default=None, help="default: auto"
-    )
+    parser.add_argument("--enclosure", choices=ENCLOSURES, default=None, help="default: auto")
     parser.add_argument(
         "--propagate", choices=("kernel", "carried"), default=None, help="default: auto"
     )
@@ -639,7 +638,7 @@ def main(argv=None):
             params = CASES[name][0]()  # the options the default chooses for it
             n = params.n_joints
             row |= dict(
-                enclosure=_choice("enclosure", args.enclosure, ("interval", "affine", "paired"), n),
+                enclosure=_choice("enclosure", args.enclosure, ENCLOSURES, n),
                 propagate=_choice("propagate", args.propagate, ("kernel", "carried"), n),
                 segments=args.segments,
                 solve=_solve_choice(args.solve, params),

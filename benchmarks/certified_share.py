@@ -284,7 +284,11 @@ product of radii intersected with the polarisation bound, centred), as the plain
 of radii (the bound before stop 45), and dropped (not sound: only to attribute the error
 term to it). Also measured: ``"paired"`` (``enclosure="paired"``'s forms, whose products
 carry their first-order parts in pair symbols: their ``lin`` holds those symbols'
-coefficients too, so compare ``rad``, the forms' whole radius ``lin + e``)."""
+coefficients too, so compare ``rad``, the forms' whole radius ``lin + e``) and
+``"paired_inertia"`` (``enclosure="paired_inertia"``'s: pair symbols for the mass
+scales, the payload and the remainder only, ``paired_variables``)."""
+
+PAIRED_VARIANTS = ("paired", "paired_inertia")
 
 
 def _plain_bilinear(x, o, rad_x, rad_y):
@@ -331,7 +335,7 @@ def products_row(name, duration, splits, coulomb="auto"):
     p = rows.size
     sums = {
         f"{v}_{part}_{block}": []
-        for v in PRODUCT_VARIANTS + ("paired",)
+        for v in PRODUCT_VARIANTS + PAIRED_VARIANTS
         for part in ("e", "lin", "rad")
         for block in ("dd", "all")
     }
@@ -351,11 +355,13 @@ def products_row(name, duration, splits, coulomb="auto"):
         )  # fmt: skip
         v = np.concatenate([np.asarray(d_rad), np.asarray(rhat).reshape(-1)])
         weight = v[:, None] * v[None, :]
-        bilinears = (_affine._bilinear, _plain_bilinear, _no_bilinear, _affine._bilinear)
-        for variant, bilinear in zip(PRODUCT_VARIANTS + ("paired",), bilinears, strict=True):
+        bilinears = (_affine._bilinear, _plain_bilinear, _no_bilinear) + (_affine._bilinear,) * 2
+        variants = PRODUCT_VARIANTS + PAIRED_VARIANTS
+        for variant, bilinear in zip(variants, bilinears, strict=True):
+            pairing = _certified.paired_variables(variant, layout, n, p, free)
             forms = _hessian_forms(
                 xc, sens, sens2, center, d_rad, rhat, consts, layout, free, bilinear,
-                paired=variant == "paired",
+                paired=pairing or False,
             )  # fmt: skip
             lin = np.abs(forms.a).sum(-1)
             for part, values in (("e", forms.e), ("lin", lin), ("rad", lin + forms.e)):

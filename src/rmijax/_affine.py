@@ -44,7 +44,14 @@ import numpy as np
 
 from rmijax._intervals import Jet, PackedHessians, down, jet_branches, replay, up
 
-__all__ = ["AffineForm", "AffineBackend", "PairedForm", "pair_count", "run_affine_tape"]
+__all__ = [
+    "AffineForm",
+    "AffineBackend",
+    "PairedForm",
+    "pair_count",
+    "paired_over",
+    "run_affine_tape",
+]
 
 _EPS = 2.0**-52
 _REL = 2.0**-50
@@ -244,10 +251,12 @@ def _bilinear(x, o, rad_x, rad_y):
     return centre, radius
 
 
-def pair_count(k):
+def pair_count(k, paired=None):
     """How many symbols a :class:`PairedForm` over ``k`` first-order symbols has: ``k``
-    and the ``k (k + 1) / 2`` products ``eps_i eps_j``, ``i <= j``."""
-    return k + k * (k + 1) // 2
+    and the ``s (s + 1) / 2`` products ``eps_i eps_j``, ``i <= j``, of the ``s`` paired ones
+    (``paired``: their count; default all ``k``)."""
+    s = k if paired is None else paired
+    return k + s * (s + 1) // 2
 
 
 def _first_order(total):
@@ -274,30 +283,65 @@ class PairedForm(AffineForm):
     independent symbols in ``[-1, 1]``, which the set of their values lies in), and a
     product carries the product of the two first-order parts exactly in the pair symbols:
     ``(a . eps)(b . eps) = sum_(i < j) (a_i b_j + a_j b_i) eps_i eps_j + sum_i a_i b_i (1 +
-    (2 eps_i^2 - 1)) / 2``. Only the rest is bounded, by ``rad_x rad_y - A B`` (``A = sum_i
-    |a_i|`` over the first-order symbols), so products of forms that move along different
-    symbols keep how they move together, which :func:`_bilinear` loses. ``pair_count(k)``
+    (2 eps_i^2 - 1)) / 2``. Only the rest is bounded: with ``x = c_x + L_x + U_x`` (``U``:
+    the pair symbols' part and the error), ``L_x U_y + U_x L_y`` by ``A rad(U_y) + rad(U_x)
+    B`` (``A = sum_i |a_i|`` over the first-order symbols) and ``U_x U_y`` by
+    :func:`_bilinear`. So products of forms that move along different symbols keep how
+    they move together, which :func:`_bilinear` loses. ``pair_count(k)``
     symbols: 31 first-order symbols (the UR5e's box and remainder) make 527.
     """
 
+    #: ``(k, index)``: the first-order symbols' count and the paired ones (sorted), for
+    #: the classes of :func:`paired_over`; None: every one of ``k = _first_order(K)``
+    pairing = None
+
     def _quadratic(self, o, rad_x, rad_y):
-        k = _first_order(self.n_symbols)
-        rows, cols = _pairs(k)
-        a, b = self.a[..., :k], o.a[..., :k]
+        if self.pairing is None:
+            k = _first_order(self.n_symbols)
+            index = slice(0, k)
+        else:
+            k, index = self.pairing
+        a, b = self.a[..., index], o.a[..., index]
+        s = a.shape[-1]
+        rows, cols = _pairs(s)
         outer = a[..., :, None] * b[..., None, :]
         upper = outer[..., rows, cols] + outer[..., cols, rows]
         carried = jnp.where(rows == cols, 0.25 * upper, upper)  # i = j: a_i b_i / 2 (exact)
-        carried = jnp.concatenate([jnp.zeros_like(a), carried], axis=-1)  # every symbol's
+        # every symbol's: 0 on the first-order ones
+        carried = jnp.concatenate([jnp.zeros(a.shape[:-1] + (k,), a.dtype), carried], axis=-1)
         centre = 0.5 * jnp.sum(jnp.diagonal(outer, axis1=-2, axis2=-1), axis=-1)
-        size_a = jnp.sum(jnp.abs(a), axis=-1)
-        size_b = jnp.sum(jnp.abs(b), axis=-1)
-        # sum_ij |a_i b_j| = A B from below, then the rest's bound from above
-        known = size_a * size_b * (1.0 - (k + 10) * _EPS)
-        rest = jnp.maximum(_up(rad_x * rad_y) - known, 0.0)
+        # the rest, with x = c + L_S + U (U: the other symbols' part and the own error):
+        # L_Sx U_y + U_x L_Sy, at most A_S rad(U_y) + rad(U_x) B_S, and U_x U_y, bounded
+        # as an affine product (polarisation, _bilinear)
+        ux = type(self)(self.c, self.a.at[..., index].set(0.0), self.e)
+        uy = type(o)(o.c, o.a.at[..., index].set(0.0), o.e)
+        rad_ux, rad_uy = ux.rad(), uy.rad()
+        centre_u, radius_u = _bilinear(ux, uy, rad_ux, rad_uy)
+        size_a, size_b = _abs_sum(a), _abs_sum(b)
+        cross = _up(size_a * rad_uy + rad_ux * size_b, 2)
         # the rounding of every a_i b_j and of their pairwise sums (2^-51 A B), of the
-        # centre's sum over k terms (k 2^-53 A B)
-        rounding = size_a * size_b * ((k + 16) * _EPS)
-        return carried, centre, _up(rest + rounding, 2)
+        # centre's sum over s terms (s 2^-53 A B)
+        rounding = size_a * size_b * ((s + 16) * _EPS)
+        return carried, centre + centre_u, _up(cross + radius_u + rounding, 3)
+
+
+@functools.cache
+def paired_over(k, paired):
+    """The :class:`PairedForm` class over ``k`` first-order symbols that pairs only those of
+    ``paired`` (a sorted tuple of indices in ``range(k)``): its symbols are the ``k``
+    first-order ones, then one per pair of ``paired`` in ``np.triu_indices(len(paired))``
+    order, ``pair_count(k, len(paired))`` in all. A product carries ``(a_S . eps_S)(b_S .
+    eps_S)`` over the paired symbols ``S`` and bounds the rest as :class:`PairedForm` does,
+    the unpaired first-order symbols in ``U``. Every ``paired`` is sound; all of
+    ``range(k)`` gives :class:`PairedForm` itself."""
+    paired = tuple(int(i) for i in paired)
+    if list(paired) != sorted(set(paired)) or (paired and not 0 <= paired[0] <= paired[-1] < k):
+        raise ValueError(f"paired must be sorted distinct indices in range({k}), got {paired}")
+    if paired == tuple(range(k)):
+        return PairedForm
+    cls = type(f"PairedForm{k}of{len(paired)}", (PairedForm,), {})
+    cls.pairing = (k, np.asarray(paired, dtype=np.int32))
+    return jax.tree_util.register_pytree_node_class(cls)
 
 
 def _recip_positive(x):

@@ -403,7 +403,7 @@ def test_coulomb_range_sign_encloses_tanh_over_the_tube():
 
 
 CHECKED = [("interval", "kernel", "range"), ("affine", "carried", "range")]
-CHECKED += [("interval", "kernel", "auto")]
+CHECKED += [("interval", "kernel", "auto"), ("paired_inertia", "carried", "range")]
 
 
 @pytest.mark.parametrize(("enclosure", "propagate", "mode"), CHECKED)
@@ -420,6 +420,9 @@ def test_checker_verifies_a_coulomb_range_certificate(
     short = _short(traj, 6)
     options = dict(enclosure=enclosure, propagate=propagate, coulomb=mode)
     _, cert = certified.certified_bounds(short, params, **options)
+    if enclosure == "paired_inertia":  # the two mass scales and R paired, not the Coulomb
+        layout, p = certified._layout(params), params.n_params
+        assert p == 4 and certified.paired_variables(enclosure, layout, 2, p) == (0, 1, 4, 5, 6, 7)
     if mode == "auto":
         keep = np.asarray(cert.keep)[0]
         assert keep[:, 0].all() and not keep[2:, 1].any(), keep

@@ -16,8 +16,10 @@ certificate but uses its numbers as the *claims* to verify:
    differ from them by at most the rounding part; with the Lagrange remainder
    of ``gv`` over the tube that ``r_k`` defines (the Hessian enclosed by interval
    jets, or for ``enclosure="affine"`` by affine jets whose coefficients are
-   ``mpmath`` intervals, :class:`_Form`; ``"paired"``: :class:`_PairedForm`, whose
-   products carry their first-order parts in pair symbols), the stored input bound
+   ``mpmath`` intervals, :class:`_Form`; ``"paired"`` and ``"paired_inertia"``:
+   :class:`_PairedForm`, whose products carry their first-order parts in pair symbols,
+   of the variables that ``rmijax.methods.certified.paired_variables`` names: a choice,
+   sound for any), the stored input bound
    ``w_k`` is at least the recomputed one;
 4. ``propagate="kernel"``: ``r_{k+1} >= sum_{j <= k} |A^(k-j)| w_j`` with the powers
    of ``A`` in interval arithmetic (no truncation). ``propagate="carried"``: the
@@ -55,7 +57,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from rmijax._intervals import Jet
-from rmijax.methods.certified import COULOMB_MODES, _layout, perturbation_jets, solve_matrix
+from rmijax.methods.certified import (
+    COULOMB_MODES,
+    ENCLOSURES,
+    _layout,
+    paired_variables,
+    perturbation_jets,
+    solve_matrix,
+)
 from rmijax.robots.spatial import COULOMB_VELOCITY
 
 __all__ = ["CheckResult", "check_certificate"]
@@ -313,38 +322,68 @@ def _trig(x, fn, slope):
 
 class _PairedForm(_Form):
     """:class:`rmijax._affine.PairedForm` on ``mpmath``: ``k`` first-order symbols, then
-    one per pair ``i <= j`` (``eps_i eps_j``, and ``2 eps_i^2 - 1`` for ``i = j``) in
-    ``np.triu_indices(k)`` order. A product carries ``(a . eps)(b . eps)`` in them
-    exactly (interval coefficients) and bounds the rest by ``rad_x rad_y - A B``."""
+    one per pair ``i <= j`` (``eps_i eps_j``, and ``2 eps_i^2 - 1`` for ``i = j``) of the
+    paired ones (all ``k``, or those of :func:`_paired_kind`) in ``np.triu_indices``
+    order. A product carries ``(a_S . eps_S)(b_S . eps_S)`` in them exactly (interval
+    coefficients) and bounds the rest: ``A_S rad(U_y) + rad(U_x) B_S`` for the products
+    with the other part ``U`` (the unpaired symbols and the error), :func:`_bilinear` for
+    ``U_x U_y``."""
 
     __slots__ = ()
+    pairing = None  # (k, paired indices); None: every one of _first_order(K)
 
     def _quadratic(self, other):
         iv = _iv()
-        k = _first_order(len(self.a))
-        a, b = self.a[:k], other.a[:k]
+        if self.pairing is None:
+            k = _first_order(len(self.a))
+            index = list(range(k))
+        else:
+            k, index = self.pairing
+        a, b = [self.a[i] for i in index], [other.a[i] for i in index]
         carried = np.full(len(self.a), iv.mpf(0), dtype=object)
         centre = iv.mpf(0)
-        for index, (i, j) in enumerate(zip(*np.triu_indices(k), strict=True)):
+        for t, (i, j) in enumerate(zip(*np.triu_indices(len(index)), strict=True)):
             if i == j:
-                carried[k + index] = a[i] * b[i] / 2
+                carried[k + t] = a[i] * b[i] / 2
                 centre = centre + a[i] * b[i] / 2
             else:
-                carried[k + index] = a[i] * b[j] + a[j] * b[i]
-        size_a = sum((abs(v).a for v in a), iv.mpf(0))  # sum_i |a_i| from below
-        size_b = sum((abs(v).a for v in b), iv.mpf(0))
-        rest = (iv.mpf(self.rad()) * other.rad() - size_a * size_b).b
-        return carried, centre, max(rest, iv.mpf(0).b)
+                carried[k + t] = a[i] * b[j] + a[j] * b[i]
+        # the rest, with x = c + L_S + U (U: the other symbols' part and the own error):
+        # L_Sx U_y + U_x L_Sy, at most A_S rad(U_y) + rad(U_x) B_S, and U_x U_y by
+        # _bilinear (as rmijax._affine.PairedForm)
+        size_a = sum((abs(v) for v in a), iv.mpf(0)).b  # sum_(i in S) |a_i| from above
+        size_b = sum((abs(v) for v in b), iv.mpf(0)).b
+        ux, uy = _unpaired(self, index), _unpaired(other, index)
+        centre_u, radius_u = _bilinear(ux, uy)
+        cross = iv.mpf(size_a) * uy.rad() + iv.mpf(ux.rad()) * size_b
+        return carried, centre + centre_u, (cross + radius_u).b
 
-    @staticmethod
-    def point(iv, value, k):
+    @classmethod
+    def point(cls, iv, value, k):
         form = _Form.point(iv, value, k)
-        return _PairedForm(form.c, form.a, form.e)
+        return cls(form.c, form.a, form.e)
 
-    @staticmethod
-    def nil(iv, k):
+    @classmethod
+    def nil(cls, iv, k):
         form = _Form.nil(iv, k)
-        return _PairedForm(form.c, form.a, form.e, True)
+        return cls(form.c, form.a, form.e, True)
+
+
+def _unpaired(x, index):
+    """``x`` less its paired symbols' part: the paired coefficients set to exact zeros."""
+    a = x.a.copy()
+    for i in index:
+        a[i] = _iv().mpf(0)
+    return _Form(x.c, a, x.e)
+
+
+def _paired_kind(k, index):
+    """The :class:`_PairedForm` class over ``k`` first-order symbols pairing ``index``."""
+    index = tuple(int(i) for i in index)
+    if index == tuple(range(k)):
+        return _PairedForm
+    attrs = {"__slots__": (), "pairing": (k, index)}
+    return type(f"_PairedForm{k}of{len(index)}", (_PairedForm,), attrs)
 
 
 def _first_order(total):
@@ -579,10 +618,9 @@ def check_certificate(cert, traj, params, *, steps: int | None = None, pieces=No
         ValueError: a certificate whose ``enclosure``, ``propagate`` or ``solve`` is
             not one of the above.
     """
-    enclosures = ("interval", "affine", "paired")
-    if cert.enclosure not in enclosures or cert.propagate not in ("kernel", "carried"):
+    if cert.enclosure not in ENCLOSURES or cert.propagate not in ("kernel", "carried"):
         raise ValueError(
-            "check_certificate: cert.enclosure must be 'interval', 'affine' or 'paired' and "
+            f"check_certificate: cert.enclosure must be one of {ENCLOSURES} and "
             f"cert.propagate 'kernel' or 'carried', got {cert.enclosure!r} and "
             f"{cert.propagate!r}: pass the Certificate that certified_bounds returned"
         )
@@ -641,6 +679,7 @@ def check_certificate(cert, traj, params, *, steps: int | None = None, pieces=No
         noisy=noisy,
         segments=int(cert.segments),
         enclosure=cert.enclosure,
+        paired=paired_variables(cert.enclosure, layout, n, p, free, noisy),
         carried=cert.propagate == "carried",
         n=n,
         p=p,
@@ -883,13 +922,18 @@ def _affine_hessians(iv, xc, s1, s2, center, d_rad, rhat, eta_hat, s_hi, consts,
     the error term), its ``d``-gradient ``S + Q d``."""
     n, p, noisy = setup["n"], setup["p"], setup["noisy"]
     m = p + 2 * n + (2 * n if noisy else 0)
-    paired = setup["enclosure"] == "paired"
-    total = m + m * (m + 1) // 2 if paired else m
-    kind = _PairedForm if paired else _Form
+    index = setup["paired"]  # None: affine forms
+    paired = index is not None
+    total = m + len(index) * (len(index) + 1) // 2 if paired else m
+    kind = _paired_kind(m, index) if paired else _Form
     backend = _MpAffineBackend(iv, total, kind)
     radii = list(d_rad) + list(rhat) + (list(eta_hat) if noisy else [])
     rho = [(iv.mpf(r) * s_hi).b for r in radii]  # each symbol's exact radius, rounded up
-    pair_index = {pair: m + i for i, pair in enumerate(zip(*np.triu_indices(m), strict=True))}
+    pair_index = {}
+    if paired:
+        rows, cols = np.triu_indices(len(index))
+        pairs = enumerate(zip(rows, cols, strict=True))
+        pair_index = {(index[i], index[j]): m + t for t, (i, j) in pairs}
 
     def form(c, coefficients, e=None):
         a = np.full(total, iv.mpf(0), dtype=object)
@@ -906,17 +950,22 @@ def _affine_hessians(iv, xc, s1, s2, center, d_rad, rhat, eta_hat, s_hi, consts,
             coefficients = {b: s1[i, s][b] * rho[b] for b in range(p)}
             coefficients[col] = rho[col]
             q = s2[i, s]
-            if paired:  # 1/2 Q[d, d] in the pair symbols of d (d_b = rho_b eps_b)
+            if paired:  # 1/2 Q[d, d] in the pair symbols of d (d_b = rho_b eps_b) where
+                # both are paired, in the error term elsewhere
                 centre = xc[i, s] if isinstance(xc[i, s], iv.mpf) else iv.mpf(float(xc[i, s]))
+                quad = iv.mpf(0)
                 for b in range(p):
                     for c in range(b, p):
-                        if b == c:
-                            coefficients[pair_index[b, b]] = q[b, b] * (rho[b] * rho[b]) / 4
-                            centre = centre + q[b, b] * (rho[b] * rho[b]) / 4
+                        weight = rho[b] * rho[c]
+                        if (b, c) not in pair_index:
+                            both = abs(q[b, c]) + (abs(q[c, b]) if b != c else 0)
+                            quad = quad + both * weight
+                        elif b == c:
+                            coefficients[pair_index[b, b]] = q[b, b] * weight / 4
+                            centre = centre + q[b, b] * weight / 4
                         else:
-                            weight = rho[b] * rho[c]
                             coefficients[pair_index[b, c]] = (q[b, c] + q[c, b]) * weight / 2
-                state[i, s] = form(centre, coefficients)
+                state[i, s] = form(centre, coefficients, (quad / 2).b)
             else:
                 quad = iv.mpf(0)
                 for b in range(p):

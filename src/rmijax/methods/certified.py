@@ -78,7 +78,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from rmijax import _checks
-from rmijax._affine import AffineForm, PairedForm, pair_count, run_affine_tape
+from rmijax._affine import AffineForm, pair_count, paired_over, run_affine_tape
 from rmijax._intervals import Interval, Tape, _slots, run_tape, tanh, up
 from rmijax.control import coupled_perturbation
 from rmijax.methods.base import Bounds, DivergedError, check_types
@@ -125,6 +125,10 @@ AUTO_CHUNK = 4
 """``splits="auto"`` with interval jets: pieces certified together per call, every call
 the same size so that one compilation serves all rounds (affine jets use
 :func:`_affine_batch`'s size)."""
+
+ENCLOSURES = ("interval", "affine", "paired", "paired_inertia")
+"""``certified_bounds(..., enclosure=...)``: how the Hessian over the tube is enclosed (the
+two pairings: :func:`paired_variables`)."""
 
 COULOMB_MODES = ("taylor", "range", "auto")
 """``certified_bounds(..., coulomb=...)``: how a chain's Coulomb errors enter the jets."""
@@ -347,8 +351,9 @@ class Certificate:
         lower, upper: (T+1, n, 2) the band (noise included).
         noise_lo, noise_hi: (n, 2) sensor noise bounds.
         segments: radial segments of the Lagrange remainder (static).
-        enclosure: ``"interval"``, ``"affine"`` or ``"paired"``: how the Hessian over
-            the tube was enclosed (static).
+        enclosure: one of :data:`ENCLOSURES`: how the Hessian over the tube was
+            enclosed (static; the pairings follow from it and the box,
+            :func:`paired_variables`).
         propagate: ``"kernel"`` (``remainder`` from ``injected`` through ``kernel``
             and ``tail``) or ``"carried"`` (through the pieces' own loops; the
             generators are not stored: :func:`check_certificate` carries its own) (static).
@@ -672,8 +677,10 @@ def _evaluate_affine(
         center: (p,) ``th_c``; d_rad: (p,) the piece's half-widths (upper bounds);
         rhat: (n, 2) remainder bound; eta_hat: (n, 2) noise bound, or None.
         scale: the segment's end ``s``; consts, layout, free: as :func:`_evaluate`.
-        paired: (static) the forms are :class:`rmijax._affine.PairedForm`: the products'
-            first-order parts, and the state's ``1/2 Q[d, d]``, carried in pair symbols.
+        paired: (static) False, or the forms are :class:`rmijax._affine.PairedForm`: the
+            products' first-order parts, and the state's ``1/2 Q[d, d]``, carried in pair
+            symbols, of every variable (True) or of those of a sorted tuple of indices of
+            ``z`` (:func:`paired_variables`).
 
     Returns:
         ``(lo, hi)`` (n, m, m): bounds of every Hessian entry over the box.
@@ -738,29 +745,33 @@ def _evaluate_affine(
 
     leaves = (cat(values), cat(grads), cat([AffineForm.point(h, m) for h in hess]))
     form = AffineForm
-    if paired:
-        leaves = _paired_leaves(leaves, x_form, sens2, rad, n, p)
-        form = PairedForm
+    if paired is not False and paired is not None:
+        index = tuple(range(m)) if paired is True else paired
+        form = paired_over(m, index)
+        leaves = _paired_leaves(leaves, x_form, sens2, rad, n, p, form, index)
     tape, rows = _perturbation_tape(layout, n, width, noisy, *_tape_flags(consts))
     _, _, h = run_affine_tape(tape, leaves, np.asarray(rows), form)
     return h.bounds()
 
 
-def _paired_leaves(leaves, x_form, sens2, rad, n, p):
-    """The leaves of :func:`_evaluate_affine` as :class:`PairedForm` jets: every form padded
+def _paired_leaves(leaves, x_form, sens2, rad, n, p, form, index):
+    """The leaves of :func:`_evaluate_affine` as ``form`` jets (a class of
+    :func:`rmijax._affine.paired_over` pairing the variables ``index``): every form padded
     with zero pair coefficients, and the states' ``1/2 Q[d, d]`` (``d_b = rad_b eps_b``)
     moved from their error terms into the pair symbols of ``d``: ``Q_bc rad_b rad_c`` on
     ``eps_b eps_c`` (``b < c``) and ``1/4 Q_bb rad_b^2`` on ``2 eps_b^2 - 1`` and in the
-    centre; the error terms keep the rounding."""
+    centre, for the pairs of paired variables; the other pairs' ``1/2 |Q_bc| rad_b rad_c``
+    stay in the error terms, with the rounding."""
     m = rad.shape[0]
-    total = pair_count(m)
+    total = pair_count(m, len(index))
 
     def pad(f):
         zeros = jnp.zeros(f.a.shape[:-1] + (total - m,), f.a.dtype)
-        return PairedForm(f.c, jnp.concatenate([f.a, zeros], -1), f.e)
+        return form(f.c, jnp.concatenate([f.a, zeros], -1), f.e)
 
     value, grad, hess = (pad(f) for f in leaves)
-    rows, cols = np.triu_indices(m)
+    index = np.asarray(index, dtype=np.int32)
+    rows, cols = (index[i] for i in np.triu_indices(index.size))
     inner = (rows < p) & (cols < p)  # the pairs of d's symbols
     rr, cc = rows[inner], cols[inner]
     weight = rad[rr] * rad[cc]
@@ -768,17 +779,53 @@ def _paired_leaves(leaves, x_form, sens2, rad, n, p):
     q = swap(sens2)[:, rr, cc] * weight[None]  # (2n, pairs)
     coef = jnp.where((rr == cc)[None], 0.25 * q, q)
     centre = jnp.sum(jnp.where((rr == cc)[None], 0.25 * q, 0.0), -1)
-    index = np.flatnonzero(inner) + m
+    where = np.flatnonzero(inner) + m
     states = 2 * n  # the leaves start with the 2n states (x_form)
     c = value.c.at[:states].add(centre)
-    a = value.a.at[:states, index].set(coef)
+    a = value.a.at[:states, where].set(coef)
     # the error term held 1/2 sum |Q| rad rad; now the rounding of the state's centre and
     # coefficients (as exact() in _evaluate_affine) and of the carried terms: q (3 ulps),
-    # the centre's sum of p terms, its addition to c
+    # the centre's sum of p terms, its addition to c; and the pairs of d not carried
     own = (jnp.abs(x_form.c) + jnp.sum(jnp.abs(x_form.a), -1)) * 2.0**-50
     carried = jnp.sum(jnp.abs(q), -1) * ((p + 8) * _EPS) + jnp.abs(c[:states]) * _EPS
-    e = value.e.at[:states].set((own + carried) * (1.0 + 16 * _EPS) + _TINY)
-    return PairedForm(c, a, e), grad, hess
+    d_paired = np.isin(np.arange(p), index)
+    left = ~(d_paired[:, None] & d_paired[None, :])  # (p, p): the pairs of d not carried
+    rest = 0.0
+    if left.any():
+        weights = jnp.where(left, rad[:p, None] * rad[None, :p], 0.0)[None]
+        rest = 0.5 * jnp.sum(jnp.abs(swap(sens2)) * weights, (-2, -1))
+        rest = rest * (1.0 + (p * p + 8) * _EPS)
+    e = value.e.at[:states].set((own + carried + rest) * (1.0 + 16 * _EPS) + _TINY)
+    return form(c, a, e), grad, hess
+
+
+def paired_variables(enclosure, layout, n, p, free=None, noisy=False):
+    """The variables of ``z = (d, R[, eta])`` whose products the jets carry in pair symbols
+    (static, a sorted tuple of indices), or None (``"interval"``, ``"affine"``).
+
+    ``"paired"``: every variable. ``"paired_inertia"``: those of the uncertain parameters
+    that enter ``M`` (every parameter of the planar arm; a chain's mass scales and payload,
+    not its friction coefficients, which enter ``h`` affinely and multiply only the joint
+    velocities) and of the remainder ``R``, not the noise ``eta``. Any choice is sound (the
+    products of the others are bounded as in the affine forms); this one is the checker's
+    too.
+
+    Args:
+        enclosure: the ``enclosure`` option; layout: the chain's layout or None (planar);
+        n: joints; p: the uncertain parameters (``d``'s length); free: their indices among
+        all parameters (None: all); noisy: ``z`` holds ``eta``.
+    """
+    if enclosure not in ("paired", "paired_inertia"):
+        return None
+    m = p + 2 * n + (2 * n if noisy else 0)
+    if enclosure == "paired":
+        return tuple(range(m))
+    if layout is None:
+        d = tuple(range(p))
+    else:  # a chain's parameters: the mass scales, the payload, then the friction
+        inertial = n + (layout.payload is not None)
+        d = tuple(i for i, b in enumerate(range(p) if free is None else free) if b < inertial)
+    return d + tuple(range(p, p + 2 * n))
 
 
 def _certify_piece(
@@ -923,7 +970,7 @@ def _certify_piece(
                         consts,
                         layout,
                         free,
-                        paired=enclosure == "paired",
+                        paired=paired_variables(enclosure, layout, n, p, free, noisy) or False,
                     )
                 )
             else:
@@ -1229,9 +1276,8 @@ def _certify(
     n, p = traj.n_joints, params.n_params
     if enclosure != "interval":
         precond, ranged = solve == "preconditioned", coulomb != "taylor" and coulomb
-        batch = _affine_batch(
-            layout, n, p, centers.shape[1], noisy, precond, ranged, enclosure == "paired"
-        )
+        paired = paired_variables(enclosure, layout, n, centers.shape[1], free, noisy)
+        batch = _affine_batch(layout, n, p, centers.shape[1], noisy, precond, ranged, paired)
     else:
         batch = centers.shape[0]
     count = centers.shape[0]
@@ -1251,11 +1297,12 @@ def _certify(
     return pieces, kernel, tail
 
 
-def _affine_batch(layout, n, p, variables, noisy, precond=False, ranged=False, paired=False):
+def _affine_batch(layout, n, p, variables, noisy, precond=False, ranged=False, paired=None):
     """How many pieces to evaluate together on affine jets: as many as keep the tape's
     buffers (live rows x packed Hessian, gradient and value x (symbols + 2) floats) within
     :data:`_AFFINE_BUFFER`, at least one (``paired``: :class:`rmijax._affine.PairedForm`
-    jets, ``pair_count(m)`` symbols). Measured on this 2-core CPU (the Intel Xeon
+    jets pairing these variables, :func:`paired_variables`; ``pair_count(m, len(paired))``
+    symbols). Measured on this 2-core CPU (the Intel Xeon
     host, before the buffers held the live rows only): the two-joint arm's 2 s run (16
     pieces, 0.5 MB each) took 5.3 / 4.7 / 4.4 / 7.4 / 8.6 s once compiled in batches of 1
     / 2 / 4 / 8 / 16, one 4-link evaluation (9 MB) 13.8 ms alone and 20.8 ms per piece in
@@ -1263,7 +1310,7 @@ def _affine_batch(layout, n, p, variables, noisy, precond=False, ranged=False, p
     (ops, args, _), outputs = _perturbation_tape(layout, n, p, noisy, precond, ranged)
     m = variables + 2 * n + (2 * n if noisy else 0)  # (d, R[, eta]): uncertain ``d`` only
     rows = _slots(ops, args, _tape_leaves(n, p, noisy, precond, ranged), outputs)[3]
-    symbols = pair_count(m) if paired else m
+    symbols = m if paired is None else pair_count(m, len(paired))
     per_piece = rows * (m * (m + 1) // 2 + m + 1) * (symbols + 2) * 8
     return max(1, _AFFINE_BUFFER // per_piece)
 
@@ -1555,7 +1602,7 @@ def _certify_box(
             variables = lo.size if free is None else len(free)
             precond = solve == "preconditioned"
             ranged = coulomb != "taylor" and coulomb
-            paired = enclosure == "paired"
+            paired = paired_variables(enclosure, layout, traj.n_joints, variables, free, noisy)
             chunk = _affine_batch(
                 layout, traj.n_joints, lo.size, variables, noisy, precond, ranged, paired
             )
@@ -1630,8 +1677,10 @@ def certified_bounds(
             at two joints, needed from three) or ``"paired"`` (affine forms that also
             carry every product of two variables in a symbol of its own,
             :class:`rmijax._affine.PairedForm`: tighter again, ``m (m + 1) / 2`` more
-            symbols for ``m`` variables, so slower and larger). None: interval up to two
-            joints, affine above.
+            symbols for ``m`` variables, so slower and larger) or ``"paired_inertia"``
+            (pair symbols for the parameters that enter ``M`` and the remainder only, not
+            for friction and noise: on the UR5e's box 221 symbols instead of 527,
+            :func:`paired_variables`). None: interval up to two joints, affine above.
         propagate: how the remainder bound is carried from step to step:
             ``"kernel"`` (the nominal loop's powers, every feedback of the
             remainder on itself in absolute value) or ``"carried"`` (generators
@@ -1712,7 +1761,7 @@ def certified_bounds(
     hi_noise = jnp.broadcast_to(hi_noise, (n, 2))
     kernel_steps = _checks.positive_int("kernel_steps", kernel_steps, "steps")
     segments = _checks.positive_int("segments", segments)
-    enclosure = _choice("enclosure", enclosure, ("interval", "affine", "paired"), n)
+    enclosure = _choice("enclosure", enclosure, ENCLOSURES, n)
     propagate = _choice("propagate", propagate, ("kernel", "carried"), n)
     solve = _solve_choice(solve, params)
     coulomb = _coulomb_choice(coulomb, params)
