@@ -325,9 +325,9 @@ class _PairedForm(_Form):
     one per pair ``i <= j`` (``eps_i eps_j``, and ``2 eps_i^2 - 1`` for ``i = j``) of the
     paired ones (all ``k``, or those of :func:`_paired_kind`) in ``np.triu_indices``
     order. A product carries ``(a_S . eps_S)(b_S . eps_S)`` in them exactly (interval
-    coefficients) and bounds the rest: ``A_S rad(U_y) + rad(U_x) B_S`` for the products
-    with the other part ``U`` (the unpaired symbols and the error), :func:`_bilinear` for
-    ``U_x U_y``."""
+    coefficients) and bounds the rest: pairing all, by ``rad_x rad_y - A B``; pairing some,
+    ``A_S rad(U_y) + rad(U_x) B_S`` for the products with the other part ``U`` (the
+    unpaired symbols and the error), :func:`_bilinear` for ``U_x U_y``."""
 
     __slots__ = ()
     pairing = None  # (k, paired indices); None: every one of _first_order(K)
@@ -348,9 +348,14 @@ class _PairedForm(_Form):
                 centre = centre + a[i] * b[i] / 2
             else:
                 carried[k + t] = a[i] * b[j] + a[j] * b[i]
+        if self.pairing is None:  # every first-order symbol paired: rad_x rad_y - A B
+            low_a = sum((abs(v).a for v in a), iv.mpf(0))  # sum_i |a_i| from below
+            low_b = sum((abs(v).a for v in b), iv.mpf(0))
+            rest = (iv.mpf(self.rad()) * other.rad() - low_a * low_b).b
+            return carried, centre, max(rest, iv.mpf(0).b)
         # the rest, with x = c + L_S + U (U: the other symbols' part and the own error):
         # L_Sx U_y + U_x L_Sy, at most A_S rad(U_y) + rad(U_x) B_S, and U_x U_y by
-        # _bilinear (as rmijax._affine.PairedForm)
+        # _bilinear (as rmijax._affine.PairedForm's classes of paired_over)
         size_a = sum((abs(v) for v in a), iv.mpf(0)).b  # sum_(i in S) |a_i| from above
         size_b = sum((abs(v) for v in b), iv.mpf(0)).b
         ux, uy = _unpaired(self, index), _unpaired(other, index)
