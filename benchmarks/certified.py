@@ -62,7 +62,7 @@ import numpy as np
 
 jax.config.update("jax_enable_x64", True)
 
-from _common import run_meta  # noqa: E402
+from _common import host_reference, run_meta  # noqa: E402
 
 import rmijax  # noqa: E402
 from rmijax.methods.base import DivergedError  # noqa: E402
@@ -669,7 +669,10 @@ def main(argv=None):
 
 
 def _write(args, rows):
-    record = dict(meta=run_meta("benchmarks/certified.py", dtype="float64"), rows=rows)
+    # the host's speed as each case ends (stop 52 on): one commit's first call took 292 s
+    # and 834 s on two days' 2-core hosts, so seconds compare only with it
+    meta = run_meta("benchmarks/certified.py", dtype="float64")
+    record = dict(meta={**meta, "host_reference": host_reference()}, rows=rows)
     with open(args.json, "w") as handle:
         json.dump(record, handle, indent=1)
 
