@@ -292,6 +292,12 @@ def main(argv=None):
         "(no 32-link run has finished)",
     )
     parser.add_argument("--draws", type=int, default=1000, help="uniform Monte-Carlo draws")
+    parser.add_argument(
+        "--cold-only",
+        action="store_true",
+        help="time whole-run methods (certified) by their only call, compilation included, "
+        "instead of a second call: half the cost of a long run",
+    )
     parser.add_argument("--json", help="write the results here")
     parser.add_argument("--plot", help="save the figure here (PNG)")
     parser.add_argument(
@@ -335,6 +341,7 @@ def main(argv=None):
                     log(f"[{name}] none of {args.methods} runs on this case")
                     continue
             options.setdefault("draws", args.draws)
+            options.setdefault("warm", not args.cold_only)
             results.append(compare(case, methods, log=log, **options))
             timed = not args.methods or "corner_search" in args.methods
             if cost_only and timed and case.params.n_joints in args.corner_search_cost:

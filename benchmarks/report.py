@@ -258,6 +258,8 @@ def _cost(m, steps):
     per_step = _ms(m["seconds_per_step"] * 1e3)
     if m.get("cost_basis") == "whole_run":
         return f"{per_step} (whole run: {m['whole_run_s']:.1f} s / {steps} steps)"
+    if m.get("cost_basis") == "whole_run_cold":
+        return f"{per_step} (one cold whole run: {m['whole_run_first_s']:.1f} s / {steps} steps)"
     return per_step
 
 

@@ -78,6 +78,9 @@ def test_whole_run_cost_and_refusals_are_labelled():
     assert rows[0][2] == "12.5 ms"
     assert rows[1][2] == "12.5 ms (whole run: 12.5 s / 1000 steps)"
     assert rows[1][3] == "1.02 / 1.02" and rows[1][5] == "100.00%"
+    cold = _scored(cost_basis="whole_run_cold", whole_run_first_s=12.5)  # --cold-only
+    rows = report._case_rows("preset2", {"T": 1000, "methods": {"certified": cold}})
+    assert rows[0][2] == "12.5 ms (one cold whole run: 12.5 s / 1000 steps)"
     message = "certified bounds are not finite (step 16, joint 0 tachometer): diverged [probe]"
     refused = {"T": 1000, "methods": {"rmi": _scored()}, "diverged": {"certified": message}}
     rows = report._case_rows("preset4", refused)

@@ -247,3 +247,41 @@ def test_an_unsupported_method_is_reported_not_dropped():
     (row,) = summary_rows([result])
     assert (row["method"], row["status"]) == ("certified", "not supported")
     assert math.isnan(row["enc_width_over_worst"]) and math.isnan(row["detected"])
+
+
+@pytest.mark.parametrize("warm", [True, False])
+def test_whole_run_methods_are_called_twice_warm_and_once_cold(monkeypatch, warm):
+    """``warm=False`` (``benchmarks/methods.py --cold-only``) calls a whole-run method
+    once, and its cost is that call over ``T``, labelled so; warm, the second of two
+    calls. The band is the same either way."""
+    import rmijax.evaluation.comparison as comparison
+
+    calls = []
+
+    def counted(traj, params, **kwargs):
+        calls.append(traj.n_steps)
+        return rmijax.bounds(traj, params, **kwargs)
+
+    monkeypatch.setattr(comparison, "bounds", counted)
+    case = _pendulum_case(duration=0.3)
+    band, cost = _timed_bounds(case, "certified", None, {}, 5, 0, warm=warm)
+    assert calls == [case.traj.n_steps] * (2 if warm else 1)
+    expected = rmijax.bounds(case.traj, case.params, method="certified")
+    np.testing.assert_array_equal(np.asarray(band.upper), np.asarray(expected.upper))
+    seconds = cost["whole_run_s"] if warm else cost["whole_run_first_s"]
+    assert cost["seconds_per_step"] == seconds / case.traj.n_steps
+    assert cost["cost_basis"] == ("whole_run" if warm else "whole_run_cold")
+    assert ("whole_run_s" in cost) == warm and cost["whole_run_first_s"] > 0
+    scored = {
+        "seconds_per_step": cost["seconds_per_step"],
+        "cost_basis": cost["cost_basis"],
+        "width_over_worst": {s: {"median": 1.0} for s in ("encoder", "tachometer")},
+        "worst_points_inside": 1.0,
+        "containment": {"inside": 1.0, "clean_runs": 1.0, "worst": 0.0},
+        "detected": 1.0,
+        "median_latency": None,
+        "false_alarms_fault_free": 0,
+        "false_alarms_fault_runs": 0,
+    }
+    (row,) = summary_rows([{"case": "p", "n": 1, "methods": {"certified": scored}}])
+    assert row["cost_basis"] == ("whole run / T" if warm else "cold whole run / T")

@@ -119,19 +119,22 @@ def prefix(traj: Trajectory, steps: int) -> Trajectory:
     return dataclasses.replace(traj, **arrays)
 
 
-def _timed_bounds(case, method, readings, options, timing_steps, probe_steps):
+def _timed_bounds(case, method, readings, options, timing_steps, probe_steps, warm=True):
     """Bounds of ``method`` over the whole run, and how its cost was measured.
 
     Windowed methods: the second of two calls on the first ``timing_steps`` steps
     (the first compiles), divided by the ``timing_steps + 1`` end steps. Methods of
     :data:`WHOLE_RUN_METHODS`: first run on the first ``probe_steps`` steps (a
     divergence there is the whole run's, found for a fraction of its cost), then
-    two calls on the whole run; the second, divided by the run's ``T`` steps.
+    two calls on the whole run; the second, divided by the run's ``T`` steps. With
+    ``warm=False`` a whole-run method is called once (a long certified run costs half):
+    its cost is that call's seconds, compilation included, over ``T``.
 
     Returns:
         ``(band, cost)`` with ``cost`` a dict: ``seconds_per_step``, ``cost_basis``
-        (``"end_step"`` or ``"whole_run"``), and for whole runs ``whole_run_s``
-        (the second call) and ``whole_run_first_s`` (the first, with compilation).
+        (``"end_step"``, ``"whole_run"`` or, with ``warm=False``, ``"whole_run_cold"``),
+        and for whole runs ``whole_run_first_s`` (the first call, with compilation) and,
+        when warm, ``whole_run_s`` (the second).
 
     Raises:
         DivergedError: the method's bands diverged (on the probe, the message says so).
@@ -151,11 +154,17 @@ def _timed_bounds(case, method, readings, options, timing_steps, probe_steps):
                     sensor=err.sensor,
                 ) from err
         seconds = []
-        for _ in range(2):
+        for _ in range(2 if warm else 1):
             start = time.perf_counter()
             band = bounds(case.traj, case.params, method=method, **kwargs)
             jax.block_until_ready(band.upper)
             seconds.append(time.perf_counter() - start)
+        if not warm:
+            return band, {
+                "seconds_per_step": seconds[0] / case.traj.n_steps,
+                "cost_basis": "whole_run_cold",
+                "whole_run_first_s": seconds[0],
+            }
         return band, {
             "seconds_per_step": seconds[-1] / case.traj.n_steps,
             "cost_basis": "whole_run",
@@ -246,6 +255,7 @@ def compare(
     max_worst_starts=16,
     timing_steps=200,
     probe_steps=50,
+    warm=True,
     seed=0,
     chunk=256,
     log=print,
@@ -270,6 +280,8 @@ def compare(
         probe_steps: methods of :data:`WHOLE_RUN_METHODS` are first run on this
             many steps, so that a divergence costs a prefix, not a whole run
             (None or 0: no probe).
+        warm: time whole-run methods by a second, compiled call (True) or by their
+            only call, compilation included (False: half the cost of a long run).
         seed: seeds the draws.
         chunk: Monte-Carlo runs simulated at once.
         log: a callable taking progress messages, or None.
@@ -283,7 +295,8 @@ def compare(
         ``methods[name]`` has ``seconds_per_step``, ``cost_basis`` (``"end_step"``, or
         ``"whole_run"`` with ``whole_run_s`` and ``whole_run_first_s``: the run's
         seconds warm and with compilation, ``seconds_per_step`` being the warm one over
-        ``T``),
+        ``T``; or ``"whole_run_cold"`` with ``whole_run_first_s`` only, when
+        ``warm=False``),
         ``width_over_worst`` (per sensor: median, min, max of band width over
         worst-case range), ``worst_points_inside``, ``containment`` (``inside``,
         ``clean_runs``, ``worst``, ``runs``), ``detected``, ``median_latency``,
@@ -312,7 +325,7 @@ def compare(
         started = time.perf_counter()
         try:
             bands[method], cost[method] = _timed_bounds(
-                case, method, y_free, options.get(method, {}), timing_steps, probe_steps
+                case, method, y_free, options.get(method, {}), timing_steps, probe_steps, warm
             )
         except DivergedError as err:  # the method refuses this case: say so, score the rest
             diverged[method] = str(err)
@@ -322,7 +335,9 @@ def compare(
             unsupported[method] = str(err)
             log(f"  {method}: not supported ({err})")
             continue
-        per = "end step" if cost[method]["cost_basis"] == "end_step" else "step (whole run / T)"
+        per = {"end_step": "end step", "whole_run": "step (whole run / T)"}.get(
+            cost[method]["cost_basis"], "step (one cold whole run / T)"
+        )
         log(
             f"  {method}: {cost[method]['seconds_per_step'] * 1e3:.3f} ms per {per} "
             f"({time.perf_counter() - started:.1f} s with the timing)"
@@ -412,14 +427,15 @@ def summary_rows(results):
 
     ``status`` is ``"scored"``, ``"diverged"`` or ``"not supported"`` (a refused
     method's row has NaN scores); ``cost_basis`` says what ``ms_per_step`` divides:
-    ``"end step"`` (one end step timed) or ``"whole run / T"`` (a whole run's
-    seconds over its ``T`` steps).
+    ``"end step"`` (one end step timed), ``"whole run / T"`` (a warm whole run's
+    seconds over its ``T`` steps) or ``"cold whole run / T"`` (the only call's,
+    compilation included: ``compare(..., warm=False)``).
     """
     nan = float("nan")
     rows = []
     for result in results:
         for method, m in result["methods"].items():
-            whole = m.get("cost_basis", "end_step") == "whole_run"
+            basis = _BASIS[m.get("cost_basis", "end_step")]
             rows.append(
                 {
                     "case": result["case"],
@@ -427,7 +443,7 @@ def summary_rows(results):
                     "method": method,
                     "status": "scored",
                     "ms_per_step": m["seconds_per_step"] * 1e3,
-                    "cost_basis": "whole run / T" if whole else "end step",
+                    "cost_basis": basis,
                     "enc_width_over_worst": m["width_over_worst"]["encoder"]["median"],
                     "tach_width_over_worst": m["width_over_worst"]["tachometer"]["median"],
                     "worst_points_inside": m["worst_points_inside"],
@@ -455,6 +471,12 @@ def summary_rows(results):
             )
     return rows
 
+
+_BASIS = {
+    "end_step": "end step",
+    "whole_run": "whole run / T",
+    "whole_run_cold": "cold whole run / T",
+}
 
 _SCORES = (
     "ms_per_step",
