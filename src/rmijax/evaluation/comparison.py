@@ -159,16 +159,10 @@ def _timed_bounds(case, method, readings, options, timing_steps, probe_steps, wa
             band = bounds(case.traj, case.params, method=method, **kwargs)
             jax.block_until_ready(band.upper)
             seconds.append(time.perf_counter() - start)
-        if not warm:
-            return band, {
-                "seconds_per_step": seconds[0] / case.traj.n_steps,
-                "cost_basis": "whole_run_cold",
-                "whole_run_first_s": seconds[0],
-            }
         return band, {
             "seconds_per_step": seconds[-1] / case.traj.n_steps,
-            "cost_basis": "whole_run",
-            "whole_run_s": seconds[-1],
+            "cost_basis": "whole_run" if warm else "whole_run_cold",
+            **({"whole_run_s": seconds[-1]} if warm else {}),
             "whole_run_first_s": seconds[0],
         }
     if method == "short_window":
@@ -335,9 +329,8 @@ def compare(
             unsupported[method] = str(err)
             log(f"  {method}: not supported ({err})")
             continue
-        per = {"end_step": "end step", "whole_run": "step (whole run / T)"}.get(
-            cost[method]["cost_basis"], "step (one cold whole run / T)"
-        )
+        basis = cost[method]["cost_basis"]
+        per = "end step" if basis == "end_step" else f"step ({_BASIS[basis]})"
         log(
             f"  {method}: {cost[method]['seconds_per_step'] * 1e3:.3f} ms per {per} "
             f"({time.perf_counter() - started:.1f} s with the timing)"
