@@ -19,7 +19,8 @@ joints at 3 s): latency, misses and false alarms of the ``certified``, ``rmi``
 and ``empirical`` bands, and the false alarms of the fault-free run.
 
 With ``--checker``: :func:`rmijax.methods.certificate_check.check_certificate` on every
-enclosure/propagate pair (pendulum, two-joint arm; ``preset_arm(4)`` affine/carried):
+enclosure/propagate pair (pendulum, two-joint arm, each also with the paired forms;
+``preset_arm(4)`` affine/carried; the UR5e's friction box, one step):
 accepted, the halved-remainder mutant's certificate rejected, seconds per step and piece.
 
 With ``--remainder``: how tight the remainder bound is on the tests' pendulum fixture
@@ -318,11 +319,17 @@ def run_remainder(duration=1.0, splits=2, draws=200):
 FAULT_METHODS = ("certified", "rmi", "empirical")
 
 
+PAIRED = (("paired", "carried"), ("paired_inertia", "carried"))
 CHECKER_RUNS = (
     # case, duration (s), splits, pairs, steps checked (None: all), pieces checked
     ("pendulum_sine", 1.0, 2, "all", None, None),
+    ("pendulum_sine", 1.0, 2, PAIRED, None, None),
     ("arm2_hold_sine", 1.0, None, "all", 5, "ends"),
+    ("arm2_hold_sine", 1.0, None, PAIRED, 5, "ends"),
     ("preset4_sine", 0.05, None, (("affine", "carried"),), 2, "ends"),
+    # a real arm: the UR5e's friction box (18 parameters) with the chain's defaults,
+    # one step of its one piece (pure Python on a 6-joint chain: minutes per step)
+    ("ur5e_friction", 0.02, None, (("affine", "carried"),), 1, "ends"),
 )
 PAIRS = (
     ("interval", "kernel"),
@@ -336,8 +343,8 @@ def run_checker():
     """The independent checker on each enclosure/propagate pair: does it accept the
     certificate, does it reject the halved-remainder mutant's, and how long it takes.
 
-    Pieces ``"ends"``: the first and the middle one. Times are seconds per checked step
-    and piece (pure Python ``mpmath``, one core).
+    Pieces ``"ends"``: the first and the middle one (the one piece, if it is alone).
+    Times are seconds per checked step and piece (pure Python ``mpmath``, one core).
     """
     from rmijax.methods.certificate_check import check_certificate
 
@@ -351,7 +358,7 @@ def run_checker():
             started = time.perf_counter()
             _, cert = certified_bounds(traj, params, **options)
             certify_s = time.perf_counter() - started
-            chosen = None if pieces is None else [0, cert.n_pieces // 2]
+            chosen = None if pieces is None else sorted({0, cert.n_pieces // 2})
             count = traj.n_steps if steps is None else steps
             started = time.perf_counter()
             result = check_certificate(cert, traj, params, steps=count, pieces=chosen)
