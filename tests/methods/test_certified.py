@@ -231,6 +231,103 @@ def test_checker_rejects_tampered_carried_certificates(pendulum_affine):
         check_certificate(dataclasses.replace(cert, enclosure="zonotope"), traj, params)
 
 
+def _plain_rad(form):
+    """The checker's ``_Form.rad`` written plainly on ``mpmath.iv`` objects."""
+    total = form.e
+    for coefficient in form.a:
+        total = total + abs(coefficient)
+    return total.b
+
+
+def _plain_polarised(x, y, j):
+    """``_upper_polarised_sums`` written plainly on ``mpmath.iv`` objects."""
+    iv = _iv()
+    scale = iv.mpf(2.0**j)
+    own = (x.e * scale + y.e / scale).b
+    q, p = own, own
+    for a, b in zip(x.a, y.a, strict=True):
+        u, v = a * scale, b / scale
+        q, p = q + abs(u + v), p + abs(u - v)
+    return q.b, p.b
+
+
+def _plain_bilinear(x, y):
+    """The checker's ``_bilinear`` written plainly on ``mpmath.iv`` objects."""
+    iv = _iv()
+    rx, ry = _plain_rad(x), _plain_rad(y)
+    plain = (rx * ry).b
+    hi, lo = plain, -plain
+    if float(plain) == 0.0 or not np.isfinite(float(plain)):
+        return iv.mpf(0), plain
+    sx = sum(abs(float(a.mid)) for a in x.a)
+    sy = sum(abs(float(b.mid)) for b in y.a)
+    if sx == 0.0 or sy == 0.0:
+        return iv.mpf(0), plain
+    t = 0.5 * (np.log2(sy) - np.log2(sx))
+    steps = {int(np.sign(u) * np.floor(abs(u) + 0.25)) for u in (t - 1e-6, t, t + 1e-6)}
+    for j in sorted(steps):
+        q, p = _plain_polarised(x, y, min(max(j, -400), 400))
+        hi = min(hi, (q * q / 4).b)
+        lo = max(lo, -(p * p / 4).b)
+    centre = iv.mpf(float(((hi + lo) / 2).a))
+    radius = max((hi - centre).b, (centre - lo).b)
+    return centre, radius
+
+
+def test_checker_raw_end_sums_equal_interval_arithmetic_to_the_bit(monkeypatch):
+    """The checker's radii, polarisation sums, products' bounds (``_bilinear``) and
+    first-order parts (``_combine``), computed on the raw ends of the intervals (most of
+    its affine time went to ``mpmath.iv``'s objects), are the same floats as plain
+    ``mpmath`` interval arithmetic gives: wide and point coefficients of either sign,
+    zeros, magnitudes far apart, scales ``2^j`` up to ``2^40``. The sums' roundings show:
+    with the upper ends rounded down instead, they differ."""
+    from rmijax.methods import certificate_check as checker
+
+    iv = _iv()
+    rng = np.random.default_rng(11)
+
+    def coefficient():
+        kind = rng.integers(4)
+        if kind == 0:
+            return iv.mpf(0)
+        centre = rng.normal() * 10.0 ** rng.integers(-12, 6)
+        if kind == 1:
+            return iv.mpf(float(centre))
+        return iv.mpf(
+            [float(centre), float(centre + abs(rng.normal()) * 10.0 ** rng.integers(-15, 3))]
+        )
+
+    def form(k):
+        a = np.array([coefficient() for _ in range(k)], dtype=object)
+        return checker._Form(coefficient(), a, abs(coefficient()).b)
+
+    checks = 0
+    for _ in range(300):
+        k = int(rng.integers(1, 9))
+        x, y = form(k), form(k)
+        assert checker._Form.rad(x)._mpi_ == _plain_rad(x)._mpi_
+        j = int(rng.integers(-40, 41))
+        own = (x.e * iv.mpf(2.0**j) + y.e / iv.mpf(2.0**j)).b
+        fast = checker._upper_polarised_sums(own._mpi_[1], x.a, y.a, j)
+        assert fast == tuple(f._mpi_[1] for f in _plain_polarised(x, y, j))
+        for u, v in ((x, y), (y, x), (x, x)):
+            got, want = checker._bilinear(u, v), _plain_bilinear(u, v)
+            assert [g._mpi_ for g in got] == [w._mpi_ for w in want]
+            got = checker._combine(u.a, v.c, v.a, u.c)
+            assert [g._mpi_ for g in got] == [w._mpi_ for w in u.a * v.c + v.a * u.c]
+            checks += 1
+    assert checks == 900
+
+    # teeth: the same sums rounded down at each step give other floats
+    import mpmath.libmp as libmp
+
+    forms = [form(6) for _ in range(50)]
+    plain = [_plain_rad(x)._mpi_[1] for x in forms]
+    monkeypatch.setattr(libmp, "round_ceiling", libmp.round_floor)
+    low = [checker._upper_sum_of_abs(x.e._mpi_[1], x.a) for x in forms]
+    assert sum(a != b for a, b in zip(low, plain, strict=True)) > 25
+
+
 def test_checker_affine_forms_contain_the_exact_results():
     """The checker's own affine forms (mpmath coefficients): every operation's result
     holds the exact result at random points of its operands, and 1/x over a range that

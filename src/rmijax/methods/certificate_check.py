@@ -67,6 +67,11 @@ from rmijax.methods.certified import (
 )
 from rmijax.robots.spatial import COULOMB_VELOCITY
 
+try:  # the test extra; _iv() names the install when it is missing
+    from mpmath import libmp as _mp
+except ImportError:  # pragma: no cover
+    _mp = None
+
 __all__ = ["CheckResult", "check_certificate"]
 
 
@@ -84,12 +89,15 @@ class CheckResult(NamedTuple):
     reason: str
 
 
+_PREC = 53  # bits of the checker's interval ends
+
+
 def _iv():
     try:
         from mpmath import iv
     except ImportError as error:  # pragma: no cover - mpmath is in the test extra
         raise ImportError("check_certificate needs mpmath (pip install 'rmijax[test]')") from error
-    iv.prec = 53
+    iv.prec = _PREC
     return iv
 
 
@@ -164,11 +172,11 @@ class _Form:
         return _Form(iv.mpf(0), np.full(k, iv.mpf(0), dtype=object), iv.mpf(0), True)
 
     def rad(self):
-        """Upper bound of ``|x - c|`` (a point interval)."""
-        total = self.e
-        for coefficient in self.a:
-            total = total + abs(coefficient)
-        return total.b
+        """Upper bound of ``|x - c|`` (a point interval): ``e + sum_i |a_i|`` in interval
+        arithmetic, its upper end (:func:`_upper_sum_of_abs`)."""
+        iv = _iv()
+        total = _upper_sum_of_abs(iv.convert(self.e)._mpi_[1], self.a)
+        return iv.make_mpf((total, total))
 
     def interval(self):
         r = self.rad()
@@ -221,7 +229,7 @@ class _Form:
             return other
         carried, centre, radius = self._quadratic(other)
         e = abs(self.c).b * other.e + abs(other.c).b * self.e + radius
-        a = self.a * other.c + other.a * self.c
+        a = _combine(self.a, other.c, other.a, self.c)
         return type(self)(self.c * other.c + centre, a if carried is None else a + carried, e)
 
     def _quadratic(self, other):
@@ -243,6 +251,19 @@ class _Form:
         return _recip(self) * other
 
 
+def _combine(a, c, b, d):
+    """``a * c + b * d`` (object arrays ``a``, ``b`` of intervals, intervals ``c``, ``d``)
+    by ``mpmath.libmp``'s ``mpi_mul`` and ``mpi_add`` on the raw ends: the same intervals
+    as the object arrays' arithmetic gives, without ``mpmath.iv``'s per-operation cost."""
+    iv, (c, d) = _iv(), (c._mpi_, d._mpi_)
+    out = np.empty(len(a), dtype=object)
+    for i, (u, v) in enumerate(zip(a, b, strict=True)):
+        out[i] = iv.make_mpf(
+            _mp.mpi_add(_mp.mpi_mul(u._mpi_, c, _PREC), _mp.mpi_mul(v._mpi_, d, _PREC), _PREC)
+        )
+    return out
+
+
 def _bilinear(x, y):
     """``(centre, radius)``, both exact: ``(L_x + E_x)(L_y + E_y)`` lies in ``centre +
     [-radius, radius]`` for every ``eps``. The product of radii intersected with the
@@ -253,30 +274,93 @@ def _bilinear(x, y):
     ``1e-6`` of a step of ``floor`` every neighbour (the certifier's floats differ from
     these by ulps), the bounds intersected. Symmetric: ``x * y`` and ``y * x`` give the
     same bound."""
+    # mpmath's interval functions (libmp.mpi_*, _PREC bits) on the raw ends: the same floats
+    # as on mpmath.iv's objects, whose overhead was most of the checker's affine time.
     iv = _iv()
-    rx, ry = x.rad(), y.rad()
-    plain = (rx * ry).b
-    hi, lo = plain, -plain
-    if float(plain) == 0.0 or not np.isfinite(float(plain)):
-        return iv.mpf(0), plain
-    sx = sum(abs(float(a.mid)) for a in x.a)  # the symbols' parts, as the certifier's scale
-    sy = sum(abs(float(b.mid)) for b in y.a)
+    ex, ey = iv.convert(x.e)._mpi_, iv.convert(y.e)._mpi_
+    rx, ry = _upper_sum_of_abs(ex[1], x.a), _upper_sum_of_abs(ey[1], y.a)
+    plain = _mp.mpi_mul((rx, rx), (ry, ry), _PREC)[1]
+    if _mp.to_float(plain) == 0.0 or not np.isfinite(_mp.to_float(plain)):
+        return iv.mpf(0), iv.make_mpf((plain, plain))
+    sx, sy = _parts(x.a), _parts(y.a)  # the symbols' parts, as the certifier's scale
     if sx == 0.0 or sy == 0.0:
-        return iv.mpf(0), plain
+        return iv.mpf(0), iv.make_mpf((plain, plain))
     t = 0.5 * (np.log2(sy) - np.log2(sx))
     steps = {int(np.sign(u) * np.floor(abs(u) + 0.25)) for u in (t - 1e-6, t, t + 1e-6)}
+    hi, lo = plain, _mp.mpf_neg(plain)
+    two, four = (_mp.from_float(2.0),) * 2, (_mp.from_float(4.0),) * 2
     for j in sorted(steps):
-        scale = iv.mpf(2.0 ** min(max(j, -400), 400))
-        own = x.e * scale + y.e / scale
-        q, p = own, own
-        for a, b in zip(x.a, y.a, strict=True):
-            u, v = a * scale, b / scale
-            q, p = q + abs(u + v), p + abs(u - v)
-        hi = min(hi, (q.b * q.b / 4).b)
-        lo = max(lo, -(p.b * p.b / 4).b)
-    centre = iv.mpf(float(((hi + lo) / 2).a))
-    radius = max((hi - centre).b, (centre - lo).b)
-    return centre, radius
+        j = min(max(j, -400), 400)
+        scale = (_mp.from_float(2.0**j),) * 2
+        own = _mp.mpi_add(_mp.mpi_mul(ex, scale, _PREC), _mp.mpi_div(ey, scale, _PREC), _PREC)[1]
+        q, p = _upper_polarised_sums(own, x.a, y.a, j)
+        top = _mp.mpi_div(_mp.mpi_mul((q, q), (q, q), _PREC), four, _PREC)[1]
+        bottom = _mp.mpf_neg(_mp.mpi_div(_mp.mpi_mul((p, p), (p, p), _PREC), four, _PREC)[1])
+        hi = top if _mp.mpf_lt(top, hi) else hi
+        lo = bottom if _mp.mpf_lt(lo, bottom) else lo
+    middle = _mp.from_float(
+        _mp.to_float(_mp.mpi_div(_mp.mpi_add((hi, hi), (lo, lo), _PREC), two, _PREC)[0])
+    )
+    centre = (middle, middle)
+    up, down = _mp.mpi_sub((hi, hi), centre, _PREC)[1], _mp.mpi_sub(centre, (lo, lo), _PREC)[1]
+    return iv.make_mpf(centre), iv.make_mpf((down,) * 2 if _mp.mpf_lt(up, down) else (up,) * 2)
+
+
+def _parts(coefficients):
+    """``sum_i |float(a_i.mid)|`` (Python floats), on the raw ends."""
+    return sum(abs(_mp.to_float(_mp.mpi_mid(a._mpi_, _PREC))) for a in coefficients)
+
+
+def _upper_sum_of_abs(start, coefficients):
+    """Upper end (raw ``mpf``) of ``start + |a_1| + ... + |a_n|`` in ``mpmath`` interval
+    arithmetic (``a_i`` intervals, ``start`` a raw upper end): the same float as the
+    interval sum's ``.b``, computed on the raw ends instead of through ``mpmath.iv``'s
+    objects, which cost most of the checker's time in its affine products. An interval
+    sum's upper end depends on its operands' upper ends only (rounded up at 53 bits, NaN
+    read as +inf, as ``mpmath.libmp.mpi_add``), and ``|[lo, hi]|``'s is ``max(-lo, hi)``
+    (``mpi_abs``; exact)."""
+    total = start
+    for a in coefficients:
+        lo, hi = a._mpi_
+        neg = _mp.mpf_neg(lo)
+        total = _mp.mpf_add(total, hi if _mp.mpf_lt(neg, hi) else neg, _PREC, _mp.round_ceiling)
+        if total == _mp.fnan:
+            total = _mp.finf
+    return total
+
+
+def _upper_polarised_sums(own, xa, ya, j):
+    """``(Q, P)``, raw ``mpf``: the upper ends of ``own + sum_i |2^j a_i + 2^-j b_i|`` and
+    ``own + sum_i |2^j a_i - 2^-j b_i|`` in ``mpmath`` interval arithmetic (``own`` a raw
+    upper end, ``a_i``, ``b_i`` intervals), the same floats as that arithmetic gives,
+    on the raw ends (:func:`_upper_sum_of_abs`): ``2^{+-j}`` scales the ends exactly, the
+    sum ``[u0 + v0, u1 + v1]`` and difference ``[u0 - v1, u1 - v0]`` round outward at 53
+    bits (``mpmath.libmp.mpi_add``, ``mpi_sub``)."""
+
+    def upper_abs(lo, hi):
+        lo = _mp.fninf if lo == _mp.fnan else lo
+        hi = _mp.finf if hi == _mp.fnan else hi
+        neg = _mp.mpf_neg(lo)
+        return hi if _mp.mpf_lt(neg, hi) else neg
+
+    q = p = own
+    for a, b in zip(xa, ya, strict=True):
+        (a0, a1), (b0, b1) = a._mpi_, b._mpi_
+        u0, u1 = _mp.mpf_shift(a0, j), _mp.mpf_shift(a1, j)
+        v0, v1 = _mp.mpf_shift(b0, -j), _mp.mpf_shift(b1, -j)
+        plus = upper_abs(
+            _mp.mpf_add(u0, v0, _PREC, _mp.round_floor),
+            _mp.mpf_add(u1, v1, _PREC, _mp.round_ceiling),
+        )
+        minus = upper_abs(
+            _mp.mpf_sub(u0, v1, _PREC, _mp.round_floor),
+            _mp.mpf_sub(u1, v0, _PREC, _mp.round_ceiling),
+        )
+        q = _mp.mpf_add(q, plus, _PREC, _mp.round_ceiling)
+        p = _mp.mpf_add(p, minus, _PREC, _mp.round_ceiling)
+        q = _mp.finf if q == _mp.fnan else q
+        p = _mp.finf if p == _mp.fnan else p
+    return q, p
 
 
 def _recip(x):
