@@ -549,6 +549,23 @@ def checker_table():
     return _table(header, rows)
 
 
+def checker_commits_table():
+    """The checker's pendulum check timed at several commits in turn (checker_commits.py)."""
+    data = _load("checker_commits_cpu.json")
+    rows = [
+        (
+            f"`{r['ref']}`" if r["ref"] == r["commit"] else f"`{r['ref']}` ({r['commit']})",
+            f"{r['enclosure']} / carried",
+            r["steps_checked"],
+            f"{r['best_s_per_step']:.3f}",
+            ", ".join(f"{t:.3f}" for t in r["s_per_step"]),
+        )
+        for r in data["results"]
+    ]
+    header = ("commit", "enclosure / remainder", "steps", "best s per step", "every rep")
+    return _table(header, rows)
+
+
 def _load_avg(meta):
     load = meta.get("load_avg", meta.get("load_average_after"))
     return ", ".join(f"{x:.2f}" for x in load) if load else "not recorded"
@@ -651,6 +668,7 @@ BLOCKS = {
         "methods-cost": methods_cost,
         "certified": certified_table,
         "certified-checker": checker_table,
+        "checker-commits": checker_commits_table,
     },
     "notebooks/method_comparison_conclusions.md": {
         "comparison": comparison_full,
