@@ -36,10 +36,12 @@ certificate but uses its numbers as the *claims* to verify:
 
 Together these are the induction of :mod:`rmijax.methods.certified`, so a certificate
 that passes for steps ``0..K`` proves the band for those steps. It is slow
-(pure Python intervals: with interval jets about a second per step and piece for two
-joints; with affine jets about 0.1 s for the pendulum, 1 s for two joints and 30 s for
-four), meant for short runs. It shares with the certifier only the formula of the
-perturbation (:func:`rmijax.methods.certified.planar_perturbation_jets`, or
+(pure Python intervals, per step and piece on a 2-core AMD EPYC host,
+``benchmarks/results/certified_checker_cpu.json``: with interval jets 0.2-0.3 s for two
+joints; with affine jets about 0.13 s for the pendulum, 1.6 s for two joints, 35 s for
+four and 10 minutes for the UR5e's friction box), meant for short runs. It shares with
+the certifier only the formula of the perturbation
+(:func:`rmijax.methods.certified.planar_perturbation_jets`, or
 :func:`rmijax.methods.chain_jets.chain_perturbation_jets` for a loaded arm) and the
 jet's chain rule (:class:`rmijax._intervals.Jet`), both run here on
 ``mpmath`` intervals or :class:`_Form`; the affine arithmetic, the loop matrix and the
