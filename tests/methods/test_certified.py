@@ -328,6 +328,123 @@ def test_checker_raw_end_sums_equal_interval_arithmetic_to_the_bit(monkeypatch):
     assert sum(a != b for a, b in zip(low, plain, strict=True)) > 25
 
 
+def _plain_paired_product(x, y):
+    """The checker's product of two paired forms written plainly on ``mpmath.iv`` objects:
+    ``(c, a, e)`` of ``x * y``."""
+    from rmijax.methods.certificate_check import _first_order, _Form
+
+    iv = _iv()
+    if x.pairing is None:
+        k = _first_order(len(x.a))
+        index = list(range(k))
+    else:
+        k, index = x.pairing
+    a, b = [x.a[i] for i in index], [y.a[i] for i in index]
+    carried = np.full(len(x.a), iv.mpf(0), dtype=object)
+    centre = iv.mpf(0)
+    for t, (i, j) in enumerate(zip(*np.triu_indices(len(index)), strict=True)):
+        if i == j:
+            carried[k + t] = a[i] * b[i] / 2
+            centre = centre + a[i] * b[i] / 2
+        else:
+            carried[k + t] = a[i] * b[j] + a[j] * b[i]
+    if x.pairing is None:
+        low_a = sum((abs(v).a for v in a), iv.mpf(0))
+        low_b = sum((abs(v).a for v in b), iv.mpf(0))
+        rest = (_plain_rad(x) * _plain_rad(y) - low_a * low_b).b
+        radius = max(rest, iv.mpf(0).b)
+    else:
+        size_a = sum((abs(v) for v in a), iv.mpf(0)).b
+        size_b = sum((abs(v) for v in b), iv.mpf(0)).b
+
+        def unpaired(f):
+            rest = f.a.copy()
+            for i in index:
+                rest[i] = iv.mpf(0)
+            return _Form(f.c, rest, f.e)
+
+        ux, uy = unpaired(x), unpaired(y)
+        centre_u, radius_u = _plain_bilinear(ux, uy)
+        cross = size_a * _plain_rad(uy) + _plain_rad(ux) * size_b
+        centre, radius = centre + centre_u, (cross + radius_u).b
+    e = abs(x.c).b * y.e + abs(y.c).b * x.e + radius
+    return x.c * y.c + centre, x.a * y.c + y.a * x.c + carried, e
+
+
+def test_checker_paired_products_on_raw_ends_equal_interval_arithmetic_to_the_bit():
+    """The paired forms' products (their pair loops and bounds on the raw ends, as the
+    affine ones) are the same floats as the plain ``mpmath`` interval arithmetic of
+    :func:`_plain_paired_product`, pairing every symbol or some; with the upper ends
+    rounded down instead, they differ."""
+    from rmijax.methods import certificate_check as checker
+
+    iv = _iv()
+    rng = np.random.default_rng(5)
+
+    def coefficient():
+        kind = rng.integers(4)
+        if kind == 0:
+            return iv.mpf(0)
+        centre = rng.normal() * 10.0 ** rng.integers(-12, 6)
+        if kind == 1:
+            return iv.mpf(float(centre))
+        return iv.mpf(
+            [float(centre), float(centre + abs(rng.normal()) * 10.0 ** rng.integers(-15, 3))]
+        )
+
+    def ends(f):
+        return [f.c._mpi_, [v._mpi_ for v in f.a], f.e._mpi_]
+
+    def product_pairs(count):
+        pairs = []
+        for _ in range(count):
+            k = int(rng.integers(1, 6))
+            kind = checker._PairedForm
+            if rng.integers(2):  # pair a proper subset (or all, through _paired_kind)
+                index = sorted(rng.choice(k, int(rng.integers(1, k + 1)), replace=False))
+                kind = checker._paired_kind(k, index)
+                total = k + len(index) * (len(index) + 1) // 2
+            else:
+                total = k + k * (k + 1) // 2
+            x, y = (
+                kind(
+                    coefficient(),
+                    np.array([coefficient() for _ in range(total)], dtype=object),
+                    abs(coefficient()).b,
+                )
+                for _ in range(2)
+            )
+            pairs.append((x, y))
+        return pairs
+
+    partial = 0
+    for x, y in product_pairs(200):
+        partial += x.pairing is not None
+        for u, v in ((x, y), (y, x), (x, x)):
+            got = u * v
+            assert ends(got) == ends(type(u)(*_plain_paired_product(u, v)))
+    assert 40 < partial < 160
+
+    # teeth: the raw ends' products (pair loops, first-order parts, bounds) taken at one
+    # bit less, or the sums' upper ends rounded down, give other floats
+    import types
+
+    import mpmath.libmp as libmp
+
+    pairs = product_pairs(30)
+    plain = [ends(type(x)(*_plain_paired_product(x, y))) for x, y in pairs]
+    coarse = types.SimpleNamespace(**vars(libmp))
+    coarse.mpi_mul = lambda s, t, prec: libmp.mpi_mul(s, t, prec - 1)
+    for name, module, value in (
+        ("_mp", checker, coarse),
+        ("round_ceiling", libmp, libmp.round_floor),
+    ):
+        with pytest.MonkeyPatch().context() as patch:
+            patch.setattr(module, name, value)
+            other = [ends(x * y) for x, y in pairs]
+        assert sum(a != b for a, b in zip(other, plain, strict=True)) > 15, name
+
+
 def test_checker_affine_forms_contain_the_exact_results():
     """The checker's own affine forms (mpmath coefficients): every operation's result
     holds the exact result at random points of its operands, and 1/x over a range that

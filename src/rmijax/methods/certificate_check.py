@@ -231,11 +231,12 @@ class _Form:
             return other
         carried, centre, radius = self._quadratic(other)
         e = abs(self.c).b * other.e + abs(other.c).b * self.e + radius
-        a = _combine(self.a, other.c, other.a, self.c)
-        return type(self)(self.c * other.c + centre, a if carried is None else a + carried, e)
+        a = _combine(self.a, other.c, other.a, self.c, carried)
+        return type(self)(self.c * other.c + centre, a, e)
 
     def _quadratic(self, other):
-        """``(carried, centre, radius)`` of the product's quadratic part: nothing carried,
+        """``(carried, centre, radius)`` of the product's quadratic part: nothing carried
+        (else ``{symbol: raw interval}``, added to the product's coefficients),
         :func:`_bilinear`'s bound."""
         return (None, *_bilinear(self, other))
 
@@ -253,16 +254,18 @@ class _Form:
         return _recip(self) * other
 
 
-def _combine(a, c, b, d):
-    """``a * c + b * d`` (object arrays ``a``, ``b`` of intervals, intervals ``c``, ``d``)
-    by ``mpmath.libmp``'s ``mpi_mul`` and ``mpi_add`` on the raw ends: the same intervals
-    as the object arrays' arithmetic gives, without ``mpmath.iv``'s per-operation cost."""
+def _combine(a, c, b, d, carried=None):
+    """``a * c + b * d`` (object arrays ``a``, ``b`` of intervals, intervals ``c``, ``d``),
+    plus ``carried[i]`` (raw intervals) where given, by ``mpmath.libmp``'s ``mpi_mul`` and
+    ``mpi_add`` on the raw ends: the same intervals as the object arrays' arithmetic
+    gives, without ``mpmath.iv``'s per-operation cost. (Adding an exact zero, as the
+    arrays' ``+ carried`` did where nothing is carried, changes no 53-bit end.)"""
     iv, (c, d) = _iv(), (c._mpi_, d._mpi_)
+    carried = carried or {}
     out = np.empty(len(a), dtype=object)
     for i, (u, v) in enumerate(zip(a, b, strict=True)):
-        out[i] = iv.make_mpf(
-            _mp.mpi_add(_mp.mpi_mul(u._mpi_, c, _PREC), _mp.mpi_mul(v._mpi_, d, _PREC), _PREC)
-        )
+        w = _mp.mpi_add(_mp.mpi_mul(u._mpi_, c, _PREC), _mp.mpi_mul(v._mpi_, d, _PREC), _PREC)
+        out[i] = iv.make_mpf(w if i not in carried else _mp.mpi_add(w, carried[i], _PREC))
     return out
 
 
@@ -323,12 +326,19 @@ def _upper_sum_of_abs(start, coefficients):
     (``mpi_abs``; exact)."""
     total = start
     for a in coefficients:
-        lo, hi = a._mpi_
-        neg = _mp.mpf_neg(lo)
-        total = _mp.mpf_add(total, hi if _mp.mpf_lt(neg, hi) else neg, _PREC, _mp.round_ceiling)
+        total = _mp.mpf_add(total, _upper_abs(*a._mpi_), _PREC, _mp.round_ceiling)
         if total == _mp.fnan:
             total = _mp.finf
     return total
+
+
+def _upper_abs(lo, hi):
+    """Upper end (raw ``mpf``, exact) of ``|[lo, hi]|``: ``max(-lo, hi)``, as
+    ``mpmath.libmp.mpi_abs``, with NaN ends read as infinite (as ``mpi_add`` leaves them)."""
+    lo = _mp.fninf if lo == _mp.fnan else lo
+    hi = _mp.finf if hi == _mp.fnan else hi
+    neg = _mp.mpf_neg(lo)
+    return hi if _mp.mpf_lt(neg, hi) else neg
 
 
 def _upper_polarised_sums(own, xa, ya, j):
@@ -338,23 +348,16 @@ def _upper_polarised_sums(own, xa, ya, j):
     on the raw ends (:func:`_upper_sum_of_abs`): ``2^{+-j}`` scales the ends exactly, the
     sum ``[u0 + v0, u1 + v1]`` and difference ``[u0 - v1, u1 - v0]`` round outward at 53
     bits (``mpmath.libmp.mpi_add``, ``mpi_sub``)."""
-
-    def upper_abs(lo, hi):
-        lo = _mp.fninf if lo == _mp.fnan else lo
-        hi = _mp.finf if hi == _mp.fnan else hi
-        neg = _mp.mpf_neg(lo)
-        return hi if _mp.mpf_lt(neg, hi) else neg
-
     q = p = own
     for a, b in zip(xa, ya, strict=True):
         (a0, a1), (b0, b1) = a._mpi_, b._mpi_
         u0, u1 = _mp.mpf_shift(a0, j), _mp.mpf_shift(a1, j)
         v0, v1 = _mp.mpf_shift(b0, -j), _mp.mpf_shift(b1, -j)
-        plus = upper_abs(
+        plus = _upper_abs(
             _mp.mpf_add(u0, v0, _PREC, _mp.round_floor),
             _mp.mpf_add(u1, v1, _PREC, _mp.round_ceiling),
         )
-        minus = upper_abs(
+        minus = _upper_abs(
             _mp.mpf_sub(u0, v1, _PREC, _mp.round_floor),
             _mp.mpf_sub(u1, v0, _PREC, _mp.round_ceiling),
         )
@@ -419,35 +422,54 @@ class _PairedForm(_Form):
     pairing = None  # (k, paired indices); None: every one of _first_order(K)
 
     def _quadratic(self, other):
+        # on the raw ends (mpmath.libmp's mpi_* at _PREC bits, the same operations in the
+        # same order as mpmath.iv's objects would do them, so the same floats)
         iv = _iv()
         if self.pairing is None:
             k = _first_order(len(self.a))
             index = list(range(k))
         else:
             k, index = self.pairing
-        a, b = [self.a[i] for i in index], [other.a[i] for i in index]
-        carried = np.full(len(self.a), iv.mpf(0), dtype=object)
-        centre = iv.mpf(0)
+        a, b = [self.a[i]._mpi_ for i in index], [other.a[i]._mpi_ for i in index]
+        zero, two = (_mp.fzero, _mp.fzero), (_mp.from_float(2.0),) * 2
+        carried, centre = {}, zero
         for t, (i, j) in enumerate(zip(*np.triu_indices(len(index)), strict=True)):
             if i == j:
-                carried[k + t] = a[i] * b[i] / 2
-                centre = centre + a[i] * b[i] / 2
+                half = _mp.mpi_div(_mp.mpi_mul(a[i], b[i], _PREC), two, _PREC)
+                carried[k + t] = half
+                centre = _mp.mpi_add(centre, half, _PREC)
             else:
-                carried[k + t] = a[i] * b[j] + a[j] * b[i]
+                carried[k + t] = _mp.mpi_add(
+                    _mp.mpi_mul(a[i], b[j], _PREC), _mp.mpi_mul(a[j], b[i], _PREC), _PREC
+                )
         if self.pairing is None:  # every first-order symbol paired: rad_x rad_y - A B
-            low_a = sum((abs(v).a for v in a), iv.mpf(0))  # sum_i |a_i| from below
-            low_b = sum((abs(v).a for v in b), iv.mpf(0))
-            rest = (iv.mpf(self.rad()) * other.rad() - low_a * low_b).b
-            return carried, centre, max(rest, iv.mpf(0).b)
+            low_a, low_b = zero, zero  # sum_i |a_i| from below
+            for u, v in zip(a, b, strict=True):
+                low_u, low_v = _mp.mpi_abs(u, _PREC)[0], _mp.mpi_abs(v, _PREC)[0]
+                low_a = _mp.mpi_add(low_a, (low_u, low_u), _PREC)
+                low_b = _mp.mpi_add(low_b, (low_v, low_v), _PREC)
+            rx, ry = self.rad()._mpi_, other.rad()._mpi_
+            rest = _mp.mpi_sub(_mp.mpi_mul(rx, ry, _PREC), _mp.mpi_mul(low_a, low_b, _PREC), _PREC)[
+                1
+            ]
+            rest = _mp.fzero if _mp.mpf_lt(rest, _mp.fzero) else rest
+            return carried, iv.make_mpf(centre), iv.make_mpf((rest, rest))
         # the rest, with x = c + L_S + U (U: the other symbols' part and the own error):
         # L_Sx U_y + U_x L_Sy, at most A_S rad(U_y) + rad(U_x) B_S, and U_x U_y by
         # _bilinear (as rmijax._affine.PairedForm's classes of paired_over)
-        size_a = sum((abs(v) for v in a), iv.mpf(0)).b  # sum_(i in S) |a_i| from above
-        size_b = sum((abs(v) for v in b), iv.mpf(0)).b
+        size_a = _upper_sum_of_abs(_mp.fzero, [self.a[i] for i in index])  # from above
+        size_b = _upper_sum_of_abs(_mp.fzero, [other.a[i] for i in index])
         ux, uy = _unpaired(self, index), _unpaired(other, index)
         centre_u, radius_u = _bilinear(ux, uy)
-        cross = iv.mpf(size_a) * uy.rad() + iv.mpf(ux.rad()) * size_b
-        return carried, centre + centre_u, (cross + radius_u).b
+        rux, ruy = ux.rad()._mpi_, uy.rad()._mpi_
+        cross = _mp.mpi_add(
+            _mp.mpi_mul((size_a, size_a), ruy, _PREC),
+            _mp.mpi_mul(rux, (size_b, size_b), _PREC),
+            _PREC,
+        )
+        radius = _mp.mpi_add(cross, radius_u._mpi_, _PREC)[1]
+        centre = _mp.mpi_add(centre, centre_u._mpi_, _PREC)
+        return carried, iv.make_mpf(centre), iv.make_mpf((radius, radius))
 
     @classmethod
     def point(cls, iv, value, k):
