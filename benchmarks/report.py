@@ -549,9 +549,9 @@ def checker_table():
     return _table(header, rows)
 
 
-def checker_commits_table():
+def checker_commits_table(name="checker_commits_cpu.json"):
     """The checker's pendulum check timed at several commits in turn (checker_commits.py)."""
-    data = _load("checker_commits_cpu.json")
+    data = _load(name)
     rows = [
         (
             f"`{r['ref']}`" if r["ref"] == r["commit"] else f"`{r['ref']}` ({r['commit']})",
@@ -669,6 +669,7 @@ BLOCKS = {
         "certified": certified_table,
         "certified-checker": checker_table,
         "checker-commits": checker_commits_table,
+        "checker-commits-paired": lambda: checker_commits_table("checker_commits_paired_cpu.json"),
     },
     "notebooks/method_comparison_conclusions.md": {
         "comparison": comparison_full,
