@@ -301,6 +301,13 @@ def test_checker_raw_end_sums_equal_interval_arithmetic_to_the_bit(monkeypatch):
         a = np.array([coefficient() for _ in range(k)], dtype=object)
         return checker._Form(coefficient(), a, abs(coefficient()).b)
 
+    import mpmath.libmp as libmp
+
+    ends = (-np.inf, -2.0, -1.0, 0.0, 1.0, 3.0, np.inf)
+    for lo, hi in ((lo, hi) for lo in ends for hi in ends if lo <= hi):
+        raw = (libmp.from_float(lo), libmp.from_float(hi))
+        assert checker._upper_abs(*raw) == libmp.mpi_abs(raw, 53)[1], (lo, hi)
+
     checks = 0
     for _ in range(300):
         k = int(rng.integers(1, 9))
@@ -319,8 +326,6 @@ def test_checker_raw_end_sums_equal_interval_arithmetic_to_the_bit(monkeypatch):
     assert checks == 900
 
     # teeth: the same sums rounded down at each step give other floats
-    import mpmath.libmp as libmp
-
     forms = [form(6) for _ in range(50)]
     plain = [_plain_rad(x)._mpi_[1] for x in forms]
     monkeypatch.setattr(libmp, "round_ceiling", libmp.round_floor)

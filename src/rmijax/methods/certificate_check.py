@@ -333,11 +333,17 @@ def _upper_sum_of_abs(start, coefficients):
 
 
 def _upper_abs(lo, hi):
-    """Upper end (raw ``mpf``, exact) of ``|[lo, hi]|``: ``max(-lo, hi)``, as
-    ``mpmath.libmp.mpi_abs``, with NaN ends read as infinite (as ``mpi_add`` leaves them)."""
-    lo = _mp.fninf if lo == _mp.fnan else lo
-    hi = _mp.finf if hi == _mp.fnan else hi
+    """Upper end (raw ``mpf``, exact) of ``|[lo, hi]|`` (``lo <= hi``): ``max(-lo, hi)``,
+    as ``mpmath.libmp.mpi_abs``, with NaN ends read as infinite (as ``mpi_add`` leaves
+    them). An end's sign is its tuple's first entry: a range on one side of 0 needs no
+    comparison (most coefficients)."""
+    if lo == _mp.fnan or hi == _mp.fnan:
+        return _mp.finf  # -(-inf) or +inf: infinite either way
+    if not lo[0]:  # 0 <= lo <= hi
+        return hi
     neg = _mp.mpf_neg(lo)
+    if hi[0]:  # lo <= hi < 0
+        return neg
     return hi if _mp.mpf_lt(neg, hi) else neg
 
 
