@@ -339,58 +339,99 @@ PAIRS = (
 )
 
 
-def run_checker():
+def _checker_run(name, duration, options, steps, pieces, remainder_scale=1.0):
+    """Certify case ``name`` (its certificate's remainder scaled by ``remainder_scale``)
+    and check it: ``(certificate's pieces, pieces checked, CheckResult, certify s, check
+    s)``. A function of plain arguments, so that a worker process can run it."""
+    from rmijax.methods.certificate_check import check_certificate
+
+    make, paths = CASES[name]
+    params = make()
+    traj = _trajectory(paths, duration)
+    started = time.perf_counter()
+    _, cert = certified_bounds(traj, params, remainder_scale=remainder_scale, **options)
+    certify_s = time.perf_counter() - started
+    chosen = None if pieces is None else sorted({0, cert.n_pieces // 2})
+    count = traj.n_steps if steps is None else steps
+    started = time.perf_counter()
+    result = check_certificate(cert, traj, params, steps=count, pieces=chosen)
+    check_s = time.perf_counter() - started
+    checked = cert.n_pieces if chosen is None else len(chosen)
+    return cert.n_pieces, checked, result, certify_s, check_s
+
+
+def _checker_runs(cases=None, steps=None):
+    """``CHECKER_RUNS``, of ``cases`` only (all if None), each checking ``steps`` steps
+    (the row's own if None; its duration lengthened to hold them, at the default step)."""
+    runs = []
+    for name, duration, splits, pairs, count, pieces in CHECKER_RUNS:
+        if cases is not None and name not in cases:
+            continue
+        if steps is not None:
+            count = steps
+            duration = max(duration, (steps + 1) * rmijax.trajectory(["hold"], duration=1.0).dt)
+        runs.append((name, duration, splits, pairs, count, pieces))
+    if cases is not None and not runs:
+        raise ValueError(f"no checker run of {cases}; they are {[r[0] for r in CHECKER_RUNS]}")
+    return runs
+
+
+def run_checker(cases=None, steps=None, jobs=1):
     """The independent checker on each enclosure/propagate pair: does it accept the
     certificate, does it reject the halved-remainder mutant's, and how long it takes.
 
     Pieces ``"ends"``: the first and the middle one (the one piece, if it is alone).
     Times are seconds per checked step and piece (pure Python ``mpmath``, one core).
+    ``cases`` and ``steps`` choose rows and override their steps checked
+    (:func:`_checker_runs`); ``jobs=2`` checks the certificate and its mutant in two
+    processes at once (each on one core; their seconds are then those of a loaded host).
     """
-    from rmijax.methods.certificate_check import check_certificate
+    from concurrent.futures import ProcessPoolExecutor
 
     rows = []
-    for name, duration, splits, pairs, steps, pieces in CHECKER_RUNS:
-        make, paths = CASES[name]
-        params = make()
-        traj = _trajectory(paths, duration)
+    for name, duration, splits, pairs, steps_, pieces in _checker_runs(cases, steps):
         for enclosure, propagate in PAIRS if pairs == "all" else pairs:
             options = dict(splits=splits, enclosure=enclosure, propagate=propagate)
-            started = time.perf_counter()
-            _, cert = certified_bounds(traj, params, **options)
-            certify_s = time.perf_counter() - started
-            chosen = None if pieces is None else sorted({0, cert.n_pieces // 2})
-            count = traj.n_steps if steps is None else steps
-            started = time.perf_counter()
-            result = check_certificate(cert, traj, params, steps=count, pieces=chosen)
-            check_s = time.perf_counter() - started
-            _, mutant = certified_bounds(traj, params, remainder_scale=0.5, **options)
-            rejected = check_certificate(mutant, traj, params, steps=count, pieces=chosen)
-            checked = cert.n_pieces if chosen is None else len(chosen)
+            runs = [(name, duration, options, steps_, pieces, scale) for scale in (1.0, 0.5)]
+            if jobs > 1:
+                with ProcessPoolExecutor(2, mp_context=_spawn()) as pool:
+                    done = list(pool.map(_checker_run, *zip(*runs, strict=True)))
+            else:
+                done = [_checker_run(*run) for run in runs]
+            (n_pieces, checked, result, certify_s, check_s), (*_, rejected, _, _) = done
             row = dict(
                 case=name,
                 duration=duration,
                 enclosure=enclosure,
                 propagate=propagate,
-                pieces=cert.n_pieces,
+                pieces=n_pieces,
                 pieces_checked=checked,
                 steps_checked=result.steps,
                 accepted=bool(result.ok),
                 reason=result.reason,
                 halved_rejected=not rejected.ok,
                 halved_reason=rejected.reason,
+                halved_steps_checked=rejected.steps,
                 certify_seconds=round(certify_s, 1),
                 check_seconds=round(check_s, 1),
                 seconds_per_step_piece=round(check_s / max(result.steps * checked, 1), 3),
+                jobs=jobs,
             )
             rows.append(row)
             print(
-                f"{name:16} {enclosure:>8}/{propagate:<7} pieces {checked}/{cert.n_pieces} "
+                f"{name:16} {enclosure:>8}/{propagate:<7} pieces {checked}/{n_pieces} "
                 f"steps {result.steps:>3} accepted {row['accepted']!s:5} "
                 f"halved rejected {row['halved_rejected']!s:5} "
                 f"{row['seconds_per_step_piece']:.3f} s/step/piece",
                 flush=True,
             )
     return dict(runs=rows)
+
+
+def _spawn():
+    import multiprocessing
+
+    return multiprocessing.get_context("spawn")  # not fork: JAX's threads are running
 
 
 def run_faults(duration, onset=3.0):
@@ -571,6 +612,19 @@ def main(argv=None):
     parser.add_argument(
         "--checker", action="store_true", help="run the certificate checker on every pair"
     )
+    parser.add_argument(
+        "--checker-cases", nargs="+", help="with --checker: only these rows (case names)"
+    )
+    parser.add_argument(
+        "--checker-steps", type=int, help="with --checker: steps checked in each row"
+    )
+    parser.add_argument(
+        "--jobs",
+        type=int,
+        default=1,
+        choices=(1, 2),
+        help="with --checker: 2 checks the certificate and its mutant at once",
+    )
     args = parser.parse_args(argv)
     if args.splits != "auto" and (args.max_pieces is not None or args.refine is not None):
         parser.error("--max-pieces and --refine go with --splits auto")
@@ -581,8 +635,15 @@ def main(argv=None):
             args.splits = _split_items(args.split)
         except ValueError:
             parser.error(f"--split takes NAME=PARTS items, got {args.split}")
+    if not args.checker and (args.checker_cases or args.checker_steps or args.jobs > 1):
+        parser.error("--checker-cases, --checker-steps and --jobs go with --checker")
+    if args.checker_steps is not None and args.checker_steps < 1:
+        parser.error("--checker-steps must be at least 1")
     if args.checker:
-        result = run_checker()
+        try:
+            result = run_checker(args.checker_cases, args.checker_steps, args.jobs)
+        except ValueError as error:
+            parser.error(str(error))
         if args.json:
             record = dict(meta=run_meta("benchmarks/certified.py", dtype="float64"), **result)
             with open(args.json, "w") as handle:
