@@ -519,9 +519,9 @@ def certified_table():
     return _table(header, rows)
 
 
-def checker_table():
+def checker_table(name="certified_checker_cpu.json"):
     """The independent checker on each enclosure/propagate pair (``--checker``)."""
-    data = _load("certified_checker_cpu.json")
+    data = _load(name)
     rows = []
     for r in data["runs"]:
         rows.append(
@@ -668,6 +668,9 @@ BLOCKS = {
         "methods-cost": methods_cost,
         "certified": certified_table,
         "certified-checker": checker_table,
+        "certified-checker-ur5e-steps": lambda: checker_table(
+            "certified_checker_ur5e_steps_cpu.json"
+        ),
         "checker-commits": checker_commits_table,
         "checker-commits-paired": lambda: checker_commits_table("checker_commits_paired_cpu.json"),
     },
