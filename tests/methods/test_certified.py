@@ -274,6 +274,19 @@ def _plain_bilinear(x, y):
     return centre, radius
 
 
+def _random_coefficient(rng):
+    """A random ``mpmath`` interval coefficient: the exact zero, a point, or a range, of
+    either sign and magnitudes 1e-12 to 1e6 (widths down to 1e-15)."""
+    iv = _iv()
+    kind = rng.integers(4)
+    if kind == 0:
+        return iv.mpf(0)
+    centre = rng.normal() * 10.0 ** rng.integers(-12, 6)
+    if kind == 1:
+        return iv.mpf(float(centre))
+    return iv.mpf([float(centre), float(centre + abs(rng.normal()) * 10.0 ** rng.integers(-15, 3))])
+
+
 def test_checker_raw_end_sums_equal_interval_arithmetic_to_the_bit(monkeypatch):
     """The checker's radii, polarisation sums, products' bounds (``_bilinear``) and
     first-order parts (``_combine``), computed on the raw ends of the intervals (most of
@@ -287,15 +300,7 @@ def test_checker_raw_end_sums_equal_interval_arithmetic_to_the_bit(monkeypatch):
     rng = np.random.default_rng(11)
 
     def coefficient():
-        kind = rng.integers(4)
-        if kind == 0:
-            return iv.mpf(0)
-        centre = rng.normal() * 10.0 ** rng.integers(-12, 6)
-        if kind == 1:
-            return iv.mpf(float(centre))
-        return iv.mpf(
-            [float(centre), float(centre + abs(rng.normal()) * 10.0 ** rng.integers(-15, 3))]
-        )
+        return _random_coefficient(rng)
 
     def form(k):
         a = np.array([coefficient() for _ in range(k)], dtype=object)
@@ -379,23 +384,14 @@ def _plain_paired_product(x, y):
 def test_checker_paired_products_on_raw_ends_equal_interval_arithmetic_to_the_bit():
     """The paired forms' products (their pair loops and bounds on the raw ends, as the
     affine ones) are the same floats as the plain ``mpmath`` interval arithmetic of
-    :func:`_plain_paired_product`, pairing every symbol or some; with the upper ends
-    rounded down instead, they differ."""
+    :func:`_plain_paired_product`, pairing every symbol or some; with the raw ends'
+    products taken at one bit less, or the upper ends rounded down, they differ."""
     from rmijax.methods import certificate_check as checker
 
-    iv = _iv()
     rng = np.random.default_rng(5)
 
     def coefficient():
-        kind = rng.integers(4)
-        if kind == 0:
-            return iv.mpf(0)
-        centre = rng.normal() * 10.0 ** rng.integers(-12, 6)
-        if kind == 1:
-            return iv.mpf(float(centre))
-        return iv.mpf(
-            [float(centre), float(centre + abs(rng.normal()) * 10.0 ** rng.integers(-15, 3))]
-        )
+        return _random_coefficient(rng)
 
     def ends(f):
         return [f.c._mpi_, [v._mpi_ for v in f.a], f.e._mpi_]
