@@ -566,6 +566,33 @@ def checker_commits_table(name="checker_commits_cpu.json"):
     return _table(header, rows)
 
 
+def interval_backends_table(name="interval_backends_cpu.json"):
+    """The checker's elementary interval operations timed per library (interval_backends.py)."""
+    data = _load(name)
+    rows = [
+        (
+            f"`{r['backend']}`",
+            r["n"],
+            f"{r['chain_us_per_term']:.3f}",
+            f"{r['chain_speedup']:.1f}",
+            f"{r['abs_sum_us_per_term']:.3f}",
+            f"{r['abs_sum_speedup']:.1f}",
+            "yes" if r["chain_contains"] and r["abs_sum_contains"] else "**no**",
+        )
+        for r in data["results"]
+    ]
+    header = (
+        "library",
+        "terms",
+        "dot product, us per term",
+        "x libmp",
+        "sum of abs, us per term",
+        "x libmp",
+        "holds the exact value",
+    )
+    return _table(header, rows)
+
+
 def _load_avg(meta):
     load = meta.get("load_avg", meta.get("load_average_after"))
     return ", ".join(f"{x:.2f}" for x in load) if load else "not recorded"
@@ -673,6 +700,7 @@ BLOCKS = {
         ),
         "checker-commits": checker_commits_table,
         "checker-commits-paired": lambda: checker_commits_table("checker_commits_paired_cpu.json"),
+        "interval-backends": interval_backends_table,
     },
     "notebooks/method_comparison_conclusions.md": {
         "comparison": comparison_full,
