@@ -401,6 +401,7 @@ CERTIFIED_FILES = (
     "certified_panda_box_auto4l6j4_cpu.json",
     "certified_ur5e_move_cpu.json",
     "certified_panda_move_cpu.json",
+    "certified_panda_move_split_cpu.json",
     "certified_iiwa14_move_cpu.json",
     "certified_arms_split_auto_cpu.json",
     "certified_ur5e_box_auto4_seg6_cpu.json",
