@@ -79,21 +79,30 @@ def _libmp(lo, hi):
     return chain, abs_sum, ends_of
 
 
-def _mp_iv(lo, hi):
-    iv = checker._iv()
-    xs = [iv.mpf([float(a), float(b)]) for a, b in zip(lo, hi, strict=True)]
+def _operator_kernels(xs, zero):
+    """``chain`` and ``abs_sum`` on interval objects with ``+``, ``*`` and ``abs`` (both
+    ``mpmath.iv`` and ``flint.arb``), starting from ``zero``."""
 
     def chain():
-        acc = iv.mpf(0)
+        acc = zero
         for i in range(len(xs) - 1):
             acc = acc + xs[i] * xs[i + 1]
         return acc
 
     def abs_sum():
-        acc = iv.mpf(0)
+        acc = zero
         for x in xs:
             acc = acc + abs(x)
         return acc
+
+    return chain, abs_sum
+
+
+def _mp_iv(lo, hi):
+    iv = checker._iv()
+    xs = [iv.mpf([float(a), float(b)]) for a, b in zip(lo, hi, strict=True)]
+
+    chain, abs_sum = _operator_kernels(xs, iv.mpf(0))
 
     def ends_of(value, kind):
         lo_, hi_ = (Fraction(*checker._mp.to_rational(e)) for e in value._mpi_)
@@ -109,17 +118,7 @@ def _arb(lo, hi):
     # the ball holding [lo, hi]: its midpoint rounded, its radius rounded up (arb's own)
     xs = [flint.arb(float(a)).union(flint.arb(float(b))) for a, b in zip(lo, hi, strict=True)]
 
-    def chain():
-        acc = flint.arb(0)
-        for i in range(len(xs) - 1):
-            acc = acc + xs[i] * xs[i + 1]
-        return acc
-
-    def abs_sum():
-        acc = flint.arb(0)
-        for x in xs:
-            acc = acc + abs(x)
-        return acc
+    chain, abs_sum = _operator_kernels(xs, flint.arb(0))
 
     def exact(point):
         man, exp = (int(v) for v in point.man_exp())
@@ -155,12 +154,7 @@ def _numpy(lo, hi):
             s = np.nextafter(s + t, np.inf)
         return s
 
-    def ends_of(value, kind):
-        if kind == "chain":
-            return Fraction(float(value[0])), Fraction(float(value[1]))
-        return None, Fraction(float(value))
-
-    return chain, abs_sum, ends_of
+    return chain, abs_sum, _float_ends
 
 
 def _numpy_vector(lo, hi):
@@ -187,12 +181,15 @@ def _numpy_vector(lo, hi):
         t, e = bounded_sum(np.maximum(-lo, hi))
         return np.nextafter(t + e, np.inf)
 
-    def ends_of(value, kind):
-        if kind == "chain":
-            return Fraction(float(value[0])), Fraction(float(value[1]))
-        return None, Fraction(float(value))
+    return chain, abs_sum, _float_ends
 
-    return chain, abs_sum, ends_of
+
+def _float_ends(value, kind):
+    """The numpy backends' ends as rationals: ``(lo, hi)`` for ``chain``, ``(None, hi)``
+    for ``abs_sum``."""
+    if kind == "chain":
+        return Fraction(float(value[0])), Fraction(float(value[1]))
+    return None, Fraction(float(value))
 
 
 BACKENDS = {
