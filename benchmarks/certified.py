@@ -23,6 +23,10 @@ enclosure/propagate pair (pendulum, two-joint arm, each also with the paired for
 ``preset_arm(4)`` affine/carried; the UR5e's friction box, one step):
 accepted, the halved-remainder mutant's certificate rejected, seconds per step and piece.
 
+With ``--injected``: the same rows' certificates (JAX only, no checker), per step the
+largest remainder input ``injected`` with the remainder on and off (the rounding padding):
+the steps where the halved mutant can differ from the certificate by more than rounding.
+
 With ``--remainder``: how tight the remainder bound is on the tests' pendulum fixture
 (``sine``, 1 s, ``splits=2``): the largest true remainder ``|R_k|`` and input ``|xi_k|``
 over the corners and 200 draws as a share of the bounds ``r_k`` and ``w_k``, and how far
@@ -428,6 +432,49 @@ def run_checker(cases=None, steps=None, jobs=1):
     return dict(runs=rows)
 
 
+def run_injected(cases=None, steps=None):
+    """Where each checker row's remainder input ``w_k`` starts to count: per step, the
+    largest entry of the certificate's ``injected`` with the remainder switched off
+    (``remainder_scale=0``: the rounding padding alone) and on (1), over the row's
+    pieces, joints and sensors. The halved mutant (``remainder_scale=0.5``) differs from
+    the certificate by half the difference, so the checker can reject it only at steps
+    where that difference is well above the padding. ``cases``, ``steps``: as
+    :func:`_checker_runs`; the JAX certifier only, no checker (seconds, not minutes).
+    """
+    rows = []
+    for name, duration, splits, pairs, steps_, _ in _checker_runs(cases, steps):
+        enclosure, propagate = (PAIRS if pairs == "all" else pairs)[0]
+        options = dict(splits=splits, enclosure=enclosure, propagate=propagate)
+        make, paths = CASES[name]
+        params = make()
+        traj = _trajectory(paths, duration)
+        injected = {}
+        for scale in (0.0, 1.0):
+            _, cert = certified_bounds(traj, params, remainder_scale=scale, **options)
+            injected[scale] = np.asarray(cert.injected)  # (P, T, n, 2)
+        count = traj.n_steps if steps_ is None else min(steps_, traj.n_steps)
+        padding = injected[0.0].max(axis=(0, 2, 3))[:count]
+        full = injected[1.0].max(axis=(0, 2, 3))[:count]
+        rows.append(
+            dict(
+                case=name,
+                duration=duration,
+                enclosure=enclosure,
+                propagate=propagate,
+                steps=[
+                    dict(step=k, padding=float(padding[k]), injected=float(full[k]))
+                    for k in range(count)
+                ],
+            )
+        )
+        for k in range(count):
+            print(
+                f"{name:16} step {k:>3} padding {padding[k]:.3e} injected {full[k]:.3e}",
+                flush=True,
+            )
+    return dict(runs=rows)
+
+
 def _spawn():
     import multiprocessing
 
@@ -613,10 +660,19 @@ def main(argv=None):
         "--checker", action="store_true", help="run the certificate checker on every pair"
     )
     parser.add_argument(
-        "--checker-cases", nargs="+", help="with --checker: only these rows (case names)"
+        "--injected",
+        action="store_true",
+        help="per step, the checker rows' remainder input against the rounding padding",
     )
     parser.add_argument(
-        "--checker-steps", type=int, help="with --checker: steps checked in each row"
+        "--checker-cases",
+        nargs="+",
+        help="with --checker or --injected: only these rows (case names)",
+    )
+    parser.add_argument(
+        "--checker-steps",
+        type=int,
+        help="with --checker or --injected: steps checked in each row",
     )
     parser.add_argument(
         "--jobs",
@@ -635,13 +691,20 @@ def main(argv=None):
             args.splits = _split_items(args.split)
         except ValueError:
             parser.error(f"--split takes NAME=PARTS items, got {args.split}")
-    if not args.checker and (args.checker_cases or args.checker_steps or args.jobs > 1):
-        parser.error("--checker-cases, --checker-steps and --jobs go with --checker")
+    if args.checker and args.injected:
+        parser.error("give --checker or --injected, not both")
+    if not (args.checker or args.injected) and (args.checker_cases or args.checker_steps):
+        parser.error("--checker-cases and --checker-steps go with --checker or --injected")
+    if not args.checker and args.jobs > 1:
+        parser.error("--jobs goes with --checker")
     if args.checker_steps is not None and args.checker_steps < 1:
         parser.error("--checker-steps must be at least 1")
-    if args.checker:
+    if args.checker or args.injected:
         try:
-            result = run_checker(args.checker_cases, args.checker_steps, args.jobs)
+            if args.checker:
+                result = run_checker(args.checker_cases, args.checker_steps, args.jobs)
+            else:
+                result = run_injected(args.checker_cases, args.checker_steps)
         except ValueError as error:
             parser.error(str(error))
         if args.json:
