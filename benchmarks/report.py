@@ -533,7 +533,7 @@ def checker_table(name="certified_checker_cpu.json"):
                 f"{r['pieces_checked']} of {r['pieces']}",
                 r["steps_checked"],
                 "yes" if r["accepted"] else f"no ({r['reason']})",
-                "yes" if r["halved_rejected"] else "no",
+                _halved(r),
                 f"{r['seconds_per_step_piece']:.3f}",
             )
         )
@@ -546,6 +546,40 @@ def checker_table(name="certified_checker_cpu.json"):
         "accepted",
         "halved remainder rejected",
         "s per step and piece",
+    )
+    return _table(header, rows)
+
+
+def _halved(run):
+    """Whether the checker rejected the halved-remainder mutant, and at which step (the
+    first step its reason names)."""
+    if not run["halved_rejected"]:
+        return "no"
+    step = re.search(r"step (\d+)", run.get("halved_reason", ""))
+    return f"yes, at step {step.group(1)}" if step else "yes"
+
+
+def injected_table(name="certified_injected_ur5e_cpu.json"):
+    """Per step, the certificate's largest remainder input against the rounding padding
+    (``certified.py --injected``)."""
+    data = _load(name)
+    rows = [
+        (
+            f"`{r['case']}`",
+            s["step"],
+            f"{s['padding']:.3g}",
+            f"{s['injected']:.3g}",
+            f"{s['injected'] / s['padding']:.4g}",
+        )
+        for r in data["runs"]
+        for s in r["steps"]
+    ]
+    header = (
+        "case",
+        "step",
+        "rounding padding (remainder off)",
+        "injected (remainder on)",
+        "ratio",
     )
     return _table(header, rows)
 
@@ -699,6 +733,7 @@ BLOCKS = {
         "certified-checker-ur5e-steps": lambda: checker_table(
             "certified_checker_ur5e_steps_cpu.json"
         ),
+        "certified-injected-ur5e": injected_table,
         "checker-commits": checker_commits_table,
         "checker-commits-paired": lambda: checker_commits_table("checker_commits_paired_cpu.json"),
         "interval-backends": interval_backends_table,
