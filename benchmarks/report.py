@@ -404,6 +404,7 @@ CERTIFIED_FILES = (
     "certified_panda_move_split_cpu.json",
     "certified_iiwa14_move_cpu.json",
     "certified_arms_split_auto_cpu.json",
+    "certified_iiwa14_split_auto_cpu.json",
     "certified_ur5e_box_auto4_seg6_cpu.json",
     "certified_ur5e_box_auto4_2s_seg6_cpu.json",
     "certified_panda_box_auto_seg6_cpu.json",
