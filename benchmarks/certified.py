@@ -435,10 +435,11 @@ def run_checker(cases=None, steps=None, jobs=1):
 def run_injected(cases=None, steps=None):
     """Where each checker row's remainder input ``w_k`` starts to count: per step, the
     largest entry of the certificate's ``injected`` with the remainder switched off
-    (``remainder_scale=0``: the rounding padding alone) and on (1), over the row's
-    pieces, joints and sensors. The halved mutant (``remainder_scale=0.5``) differs from
-    the certificate by half the difference, so the checker can reject it only at steps
-    where that difference is well above the padding. ``cases``, ``steps``: as
+    (``remainder_scale=0``: the rounding padding alone, over that run's thinner tube) and
+    on (1), over the row's pieces, joints and sensors. The halved mutant
+    (``remainder_scale=0.5``) differs from the certificate by about half the difference,
+    so the checker can reject it only at steps where that difference is well above the
+    padding. ``cases``, ``steps``: as
     :func:`_checker_runs`; the JAX certifier only, no checker (seconds, not minutes).
     """
     rows = []
