@@ -343,18 +343,25 @@ PAIRS = (
 )
 
 
+def _row_certificate(name, duration, options, remainder_scale=1.0):
+    """Case ``name``'s motion over ``duration`` s, its parameters, and its certificate
+    (``certified_bounds`` with ``options``, the remainder scaled by ``remainder_scale``):
+    ``(traj, params, cert, certify s)``."""
+    make, paths = CASES[name]
+    params = make()
+    traj = _trajectory(paths, duration)
+    started = time.perf_counter()
+    _, cert = certified_bounds(traj, params, remainder_scale=remainder_scale, **options)
+    return traj, params, cert, time.perf_counter() - started
+
+
 def _checker_run(name, duration, options, steps, pieces, remainder_scale=1.0):
     """Certify case ``name`` (its certificate's remainder scaled by ``remainder_scale``)
     and check it: ``(certificate's pieces, pieces checked, CheckResult, certify s, check
     s)``. A function of plain arguments, so that a worker process can run it."""
     from rmijax.methods.certificate_check import check_certificate
 
-    make, paths = CASES[name]
-    params = make()
-    traj = _trajectory(paths, duration)
-    started = time.perf_counter()
-    _, cert = certified_bounds(traj, params, remainder_scale=remainder_scale, **options)
-    certify_s = time.perf_counter() - started
+    traj, params, cert, certify_s = _row_certificate(name, duration, options, remainder_scale)
     chosen = None if pieces is None else sorted({0, cert.n_pieces // 2})
     count = traj.n_steps if steps is None else steps
     started = time.perf_counter()
@@ -446,12 +453,9 @@ def run_injected(cases=None, steps=None):
     for name, duration, splits, pairs, steps_, _ in _checker_runs(cases, steps):
         enclosure, propagate = (PAIRS if pairs == "all" else pairs)[0]
         options = dict(splits=splits, enclosure=enclosure, propagate=propagate)
-        make, paths = CASES[name]
-        params = make()
-        traj = _trajectory(paths, duration)
         injected = {}
         for scale in (0.0, 1.0):
-            _, cert = certified_bounds(traj, params, remainder_scale=scale, **options)
+            traj, _, cert, _ = _row_certificate(name, duration, options, scale)
             injected[scale] = np.asarray(cert.injected)  # (P, T, n, 2)
         count = traj.n_steps if steps_ is None else min(steps_, traj.n_steps)
         padding = injected[0.0].max(axis=(0, 2, 3))[:count]
